@@ -1,0 +1,260 @@
+"""Front-to-back alpha blending over each tile's depth-sorted Gaussians, and its adjoint.
+
+Launch layout: ``dim=(n_tiles, tile_size²)``, ``block_dim=tile_size²``: one thread per pixel of a
+tile. On CUDA a block is a tile: each batch of Gaussians is gathered once into shared memory
+(``tile_load_indexed``) and read by every pixel, and the block stops when all its pixels are done.
+On the CPU ``block_dim`` resolves to 1: each thread is its own block, gathers the batch itself and
+the block-wide votes and sums reduce over one thread — the same code, correct for both.
+
+Warp's tape cannot differentiate this loop (dynamic trip count, early exit, multiplicative
+transmittance), so ``backward`` is written by hand, gsplat style: it walks each pixel's list back
+to front, recovering the transmittance from the final one, and reduces every Gaussian's gradient
+over the block before one atomic add per block.
+
+Per-pixel rule (gsplat 1.5): centre at +0.5; σ = ½(a·dx² + c·dy²) + b·dx·dy, skipped if σ < 0;
+α = min(alpha_max, o·e^{−σ}), skipped if α < alpha_min; stop *before* a Gaussian that would bring
+the transmittance to ≤ t_min; colour = Σ cᵢαᵢTᵢ + T·background.
+"""
+import functools
+
+import warp as wp
+
+# Gradient vector layout per Gaussian: [d mean2d (2), d conic (3), d opacity (1), d colour (C), d depth].
+_XY, _CONIC, _OPACITY, _COLOR = 0, 2, 5, 6
+
+# Upper bound on the shared memory of one batch (bytes), to pick the batch size for wide colours.
+_BATCH_SHARED_BYTES = 24 * 1024
+
+
+def batch_size(channels: int, tile_size: int, with_depth: bool) -> int:
+    """Gaussians gathered per batch: a block's worth, fewer when feature channels are wide."""
+    per_gaussian = 4 * (1 + 2 + 3 + 1 + channels + int(with_depth))
+    b = tile_size * tile_size
+    while b > 32 and b * per_gaussian > _BATCH_SHARED_BYTES:
+        b //= 2
+    return b
+
+
+@functools.lru_cache(maxsize=None)
+def blend_kernels(channels: int, tile_size: int, with_depth: bool):
+    """(forward, backward) kernels specialised for C channels, one tile size and depth on/off."""
+    if channels < 1:
+        raise ValueError(f"channels must be >= 1, got {channels}")
+    C = channels
+    TS = tile_size
+    B = batch_size(channels, tile_size, with_depth)
+    DEPTH = 1 if with_depth else 0
+    NG = _COLOR + C + DEPTH
+    ColorVec = wp.types.vector(length=C, dtype=wp.float32)
+    GradVec = wp.types.vector(length=NG, dtype=wp.float32)
+
+    def forward(
+        ranges: wp.array2d(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array2d(dtype=float),
+        depths: wp.array(dtype=float),
+        background: wp.array(dtype=float),
+        width: int,
+        height: int,
+        tiles_x: int,
+        alpha_min: float,
+        alpha_max: float,
+        t_min: float,
+        out_color: wp.array3d(dtype=float),
+        out_alpha: wp.array3d(dtype=float),
+        out_depth: wp.array3d(dtype=float),
+        out_transmittance: wp.array2d(dtype=float),
+        out_last: wp.array2d(dtype=wp.int32),
+    ):
+        tile, lane = wp.tid()
+        ty = tile // tiles_x
+        px = (tile - ty * tiles_x) * TS + lane % TS
+        py = ty * TS + lane // TS
+        inside = px < width and py < height
+        fx = float(px) + 0.5
+        fy = float(py) + 0.5
+        start = ranges[tile, 0]
+        end = ranges[tile, 1]
+
+        T = float(1.0)
+        acc = ColorVec()
+        acc_depth = float(0.0)
+        last = int(-1)
+        done = not inside
+        n_batches = (end - start + B - 1) // B
+        for b in range(n_batches):
+            # Block-wide vote: stop when every pixel of the tile is done.
+            n_done = wp.tile_sum(wp.tile(wp.where(done, 1, 0)))
+            if wp.tile_extract(n_done, 0) == wp.block_dim():
+                break
+            b0 = start + b * B
+            ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
+            xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+            if wp.static(DEPTH == 1):
+                dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            count = wp.min(B, end - b0)
+            if not done:
+                for j in range(count):
+                    xy = xy_t[j]
+                    cn = cn_t[j]
+                    dx = xy[0] - fx
+                    dy = xy[1] - fy
+                    sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+                    alpha = wp.min(alpha_max, op_t[j] * wp.exp(-sigma))
+                    if sigma >= 0.0 and alpha >= alpha_min:
+                        next_t = T * (1.0 - alpha)
+                        if next_t <= t_min:
+                            done = True
+                            break
+                        w = alpha * T
+                        for c in range(C):
+                            acc[c] = acc[c] + col_t[j, c] * w
+                        if wp.static(DEPTH == 1):
+                            acc_depth += dep_t[j] * w
+                        T = next_t
+                        last = b0 + j
+        if inside:
+            for c in range(C):
+                out_color[py, px, c] = acc[c] + T * background[c]
+            out_alpha[py, px, 0] = 1.0 - T
+            if wp.static(DEPTH == 1):
+                out_depth[py, px, 0] = acc_depth
+            out_transmittance[py, px] = T
+            out_last[py, px] = last
+
+    def backward(
+        ranges: wp.array2d(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array2d(dtype=float),
+        depths: wp.array(dtype=float),
+        background: wp.array(dtype=float),
+        width: int,
+        height: int,
+        tiles_x: int,
+        alpha_min: float,
+        alpha_max: float,
+        transmittance: wp.array2d(dtype=float),
+        last_ids: wp.array2d(dtype=wp.int32),
+        v_color: wp.array3d(dtype=float),
+        v_alpha: wp.array3d(dtype=float),
+        v_depth: wp.array3d(dtype=float),
+        v_means2d: wp.array(dtype=wp.vec2),
+        v_conics: wp.array(dtype=wp.vec3),
+        v_opacities: wp.array(dtype=float),
+        v_colors: wp.array2d(dtype=float),
+        v_depths: wp.array(dtype=float),
+        v_background: wp.array(dtype=float),
+    ):
+        tile, lane = wp.tid()
+        ty = tile // tiles_x
+        px = (tile - ty * tiles_x) * TS + lane % TS
+        py = ty * TS + lane // TS
+        inside = px < width and py < height
+        fx = float(px) + 0.5
+        fy = float(py) + 0.5
+        start = ranges[tile, 0]
+        leader = lane % wp.block_dim() == 0
+
+        t_final = float(1.0)
+        last = int(-1)
+        v_img = ColorVec()
+        v_a = float(0.0)
+        v_d = float(0.0)
+        if inside:
+            t_final = transmittance[py, px]
+            last = last_ids[py, px]
+            for c in range(C):
+                v_img[c] = v_color[py, px, c]
+            v_a = v_alpha[py, px, 0]
+            if wp.static(DEPTH == 1):
+                v_d = v_depth[py, px, 0]
+        # Background: d colour / d bg = T_final; through T_final it also lowers d alpha.
+        bg_dot = float(0.0)
+        for c in range(C):
+            bg_dot += background[c] * v_img[c]
+        v_a_eff = v_a - bg_dot
+        v_bg = wp.tile_extract(wp.tile_sum(wp.tile(v_img * t_final, preserve_type=True)), 0)
+        if leader:
+            for c in range(C):
+                wp.atomic_add(v_background, c, v_bg[c])
+
+        # Walk from the last Gaussian any pixel of the block used, back to the tile's start.
+        hi = wp.tile_extract(wp.tile_max(wp.tile(last)), 0) + 1
+        T = t_final
+        buf = ColorVec()
+        buf_depth = float(0.0)
+        n_batches = (hi - start + B - 1) // B
+        for b in range(n_batches):
+            b1 = hi - b * B
+            b0 = wp.max(start, b1 - B)
+            count = b1 - b0
+            ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
+            xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+            if wp.static(DEPTH == 1):
+                dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            for jj in range(count):
+                j = count - 1 - jj
+                g = GradVec()
+                if b0 + j <= last:
+                    xy = xy_t[j]
+                    cn = cn_t[j]
+                    op = op_t[j]
+                    dx = xy[0] - fx
+                    dy = xy[1] - fy
+                    sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+                    vis = wp.exp(-sigma)
+                    alpha = wp.min(alpha_max, op * vis)
+                    if sigma >= 0.0 and alpha >= alpha_min:
+                        ra = 1.0 / (1.0 - alpha)
+                        T = T * ra
+                        w = alpha * T
+                        d_alpha = float(0.0)
+                        for c in range(C):
+                            col = col_t[j, c]
+                            g[_COLOR + c] = w * v_img[c]
+                            d_alpha += (col * T - buf[c] * ra) * v_img[c]
+                            buf[c] = buf[c] + col * w
+                        if wp.static(DEPTH == 1):
+                            dep = dep_t[j]
+                            g[_COLOR + C] = w * v_d
+                            d_alpha += (dep * T - buf_depth * ra) * v_d
+                            buf_depth += dep * w
+                        d_alpha += t_final * ra * v_a_eff
+                        if op * vis <= alpha_max:
+                            d_sigma = -op * vis * d_alpha
+                            g[_XY + 0] = d_sigma * (cn[0] * dx + cn[1] * dy)
+                            g[_XY + 1] = d_sigma * (cn[1] * dx + cn[2] * dy)
+                            g[_CONIC + 0] = 0.5 * d_sigma * dx * dx
+                            g[_CONIC + 1] = d_sigma * dx * dy
+                            g[_CONIC + 2] = 0.5 * d_sigma * dy * dy
+                            g[_OPACITY] = vis * d_alpha
+                total = wp.tile_extract(wp.tile_sum(wp.tile(g, preserve_type=True)), 0)
+                if leader:
+                    gid = ids[j]
+                    wp.atomic_add(v_means2d, gid, wp.vec2(total[_XY], total[_XY + 1]))
+                    wp.atomic_add(v_conics, gid, wp.vec3(total[_CONIC], total[_CONIC + 1], total[_CONIC + 2]))
+                    wp.atomic_add(v_opacities, gid, total[_OPACITY])
+                    for c in range(C):
+                        wp.atomic_add(v_colors, gid, c, total[_COLOR + c])
+                    if wp.static(DEPTH == 1):
+                        wp.atomic_add(v_depths, gid, total[_COLOR + C])
+
+    tag = f"c{C}_t{TS}_{'depth' if with_depth else 'nodepth'}"
+    forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
+    backward.__name__ = backward.__qualname__ = f"blend_backward_{tag}"
+    return (
+        wp.kernel(forward, enable_backward=False, module="unique"),
+        wp.kernel(backward, enable_backward=False, module="unique"),
+    )

@@ -1,0 +1,166 @@
+"""EWA projection of 3D Gaussians through a pinhole camera (gsplat 1.5 classic conventions).
+
+One thread per Gaussian. Warp generates the adjoint of this kernel; it is recorded on the render's
+tape, so gradients reach means, quats, scales and opacities through it.
+
+Numerical choices (each keeps a hard case finite and close to the float64 reference):
+- The rigid world-to-camera transform runs in float64: with coordinates of magnitude 1e4 a float32
+  transform loses ~1e-3 in camera space, far more than the 1e-4 image tolerance.
+- The 2D covariance is built from its square root A = J·W·R·S (2×3), so det(AAᵀ) = |a0 × a1|²
+  (Lagrange's identity) is never negative, even for anisotropy 1e6 where c00·c11 − c01² cancels.
+- Quaternions are normalised with a floor on their norm: a zero quaternion gives the identity
+  rotation and finite gradients instead of NaN.
+"""
+import functools
+
+import warp as wp
+
+# Radius rules (compile-time): how far from its centre a 2D Gaussian is allowed to reach.
+RADIUS_RULES = ("opacity_aware", "3sigma", "tight")
+_OPACITY_AWARE, _THREE_SIGMA, _TIGHT = 0, 1, 2
+
+QUAT_NORM_FLOOR = 1.0e-12
+
+
+@wp.func
+def quat_to_rotmat(q: wp.vec4) -> wp.mat33:
+    """w-first quaternion (not necessarily normalised) → rotation matrix."""
+    n = wp.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    inv = 1.0 / wp.max(n, QUAT_NORM_FLOOR)
+    w = q[0] * inv
+    x = q[1] * inv
+    y = q[2] * inv
+    z = q[3] * inv
+    return wp.mat33(
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )
+
+
+@functools.lru_cache(maxsize=None)
+def projection_kernel(antialiased: bool, radius_rule: str):
+    """The projection kernel specialised for one option set.
+
+    antialiased: multiply opacity by the Mip-Splatting compensation sqrt(det(Σ)/det(Σ + εI)).
+    radius_rule: "opacity_aware" (gsplat 1.5: per-axis, extent min(3.33, sqrt(2 ln(o/α_min)))),
+        "3sigma" (original 3DGS: square, 3·sqrt(λ_max), no opacity test),
+        "tight" (per-axis opacity-aware radius capped by the major axis and the image size).
+    """
+    if radius_rule not in RADIUS_RULES:
+        raise ValueError(f"radius_rule must be one of {RADIUS_RULES}, got {radius_rule!r}")
+    rule = RADIUS_RULES.index(radius_rule)
+
+    def project(
+        means: wp.array(dtype=wp.vec3),
+        quats: wp.array(dtype=wp.vec4),
+        scales: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        rot: wp.mat33d,
+        trans: wp.vec3d,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        width: int,
+        height: int,
+        near: float,
+        far: float,
+        eps2d: float,
+        alpha_min: float,
+        radius_clip: float,
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        depths: wp.array(dtype=float),
+        radii: wp.array(dtype=wp.vec2i),
+        opacities_out: wp.array(dtype=float),
+    ):
+        i = wp.tid()
+        m = means[i]
+        # float64 rigid transform (see module docstring), rounded once to float32.
+        md = wp.vec3d(wp.float64(m[0]), wp.float64(m[1]), wp.float64(m[2]))
+        cd = rot * md + trans
+        x = wp.float32(cd[0])
+        y = wp.float32(cd[1])
+        z = wp.float32(cd[2])
+
+        visible = z >= near and z <= far
+        rx = float(0.0)
+        ry = float(0.0)
+        if visible:
+            w_rot = wp.mat33(
+                wp.float32(rot[0, 0]), wp.float32(rot[0, 1]), wp.float32(rot[0, 2]),
+                wp.float32(rot[1, 0]), wp.float32(rot[1, 1]), wp.float32(rot[1, 2]),
+                wp.float32(rot[2, 0]), wp.float32(rot[2, 1]), wp.float32(rot[2, 2]),
+            )
+            s = scales[i]
+            # M = W·R·S: columns of the camera-space covariance square root.
+            mm = w_rot * quat_to_rotmat(quats[i]) * wp.diag(s)
+
+            # Perspective Jacobian, clamped outside a 1.3× frustum around the principal point.
+            tan_fovx = 0.5 * float(width) / fx
+            tan_fovy = 0.5 * float(height) / fy
+            lim_x_pos = (float(width) - cx) / fx + 0.3 * tan_fovx
+            lim_x_neg = cx / fx + 0.3 * tan_fovx
+            lim_y_pos = (float(height) - cy) / fy + 0.3 * tan_fovy
+            lim_y_neg = cy / fy + 0.3 * tan_fovy
+            rz = 1.0 / z
+            rz2 = rz * rz
+            tx = z * wp.min(lim_x_pos, wp.max(-lim_x_neg, x * rz))
+            ty = z * wp.min(lim_y_pos, wp.max(-lim_y_neg, y * rz))
+            j0 = wp.vec3(fx * rz, 0.0, -fx * tx * rz2)
+            j1 = wp.vec3(0.0, fy * rz, -fy * ty * rz2)
+            a0 = wp.transpose(mm) * j0  # row 0 of A = J·M
+            a1 = wp.transpose(mm) * j1
+            c00 = wp.dot(a0, a0)
+            c01 = wp.dot(a0, a1)
+            c11 = wp.dot(a1, a1)
+            det_orig = wp.length_sq(wp.cross(a0, a1))
+            b00 = c00 + eps2d
+            b11 = c11 + eps2d
+            det = det_orig + eps2d * (c00 + c11) + eps2d * eps2d
+
+            opacity = opacities[i]
+            if wp.static(antialiased):
+                opacity = opacity * wp.sqrt(wp.max(det_orig / det, 0.0) + 1.0e-30)
+
+            if det > 0.0:
+                if wp.static(rule == _THREE_SIGMA):
+                    half_tr = 0.5 * (b00 + b11)
+                    lam = half_tr + wp.sqrt(wp.max(0.1, half_tr * half_tr - det))
+                    rx = wp.ceil(3.0 * wp.sqrt(lam))
+                    ry = rx
+                else:
+                    if opacity >= alpha_min:
+                        extend = wp.min(3.33, wp.sqrt(2.0 * wp.log(opacity / alpha_min)))
+                        rx = wp.ceil(extend * wp.sqrt(b00))
+                        ry = wp.ceil(extend * wp.sqrt(b11))
+                        if wp.static(rule == _TIGHT):
+                            half_tr = 0.5 * (b00 + b11)
+                            lam = half_tr + wp.sqrt(wp.max(0.01, half_tr * half_tr - det))
+                            r1 = extend * wp.sqrt(lam)
+                            rx = wp.min(wp.ceil(wp.min(extend * wp.sqrt(b00), r1)), float(width))
+                            ry = wp.min(wp.ceil(wp.min(extend * wp.sqrt(b11), r1)), float(height))
+            u = fx * x * rz + cx
+            v = fy * y * rz + cy
+            # Bound the radius so that it fits an int32; tile ranges are clamped to the image anyway.
+            rx = wp.min(rx, 1.0e9)
+            ry = wp.min(ry, 1.0e9)
+            if rx <= radius_clip and ry <= radius_clip:
+                rx = 0.0
+                ry = 0.0
+            if u + rx <= 0.0 or u - rx >= float(width) or v + ry <= 0.0 or v - ry >= float(height):
+                rx = 0.0
+                ry = 0.0
+            if rx > 0.0:
+                means2d[i] = wp.vec2(u, v)
+                conics[i] = wp.vec3(b11 / det, -c01 / det, b00 / det)
+                depths[i] = z
+                opacities_out[i] = opacity
+        if rx > 0.0:
+            radii[i] = wp.vec2i(int(rx), int(ry))
+        else:
+            radii[i] = wp.vec2i(0, 0)
+
+    project.__name__ = project.__qualname__ = f"project_{'aa' if antialiased else 'classic'}_{radius_rule}"
+    return wp.kernel(project, module="unique")

@@ -1,0 +1,116 @@
+"""Scenes for the rasterizer tests and the comparison of ``rasterize`` with the float64 reference."""
+import dataclasses
+
+import numpy as np
+import torch
+
+import reference
+from securegs_warp import rasterize
+
+IMAGE_TOL = 1e-4
+GRAD_TOL = 1e-3
+DIFF_INPUTS = ("means", "quats", "scales", "opacities", "colors", "background")
+
+
+@dataclasses.dataclass
+class Scene:
+    """float32 inputs of one render; ``kwargs`` are extra rasterize options."""
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+    viewmat: torch.Tensor
+    K: torch.Tensor
+    width: int
+    height: int
+    background: torch.Tensor
+    kwargs: dict = dataclasses.field(default_factory=dict)
+
+
+def intrinsics(fx, fy, cx, cy):
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float32)
+
+
+def random_scene(seed=0, n=60, channels=3, width=40, height=30, depth=4.0, spread=1.2, scale=(0.03, 0.3), **kwargs):
+    """Random Gaussians in front of a camera at the origin looking down +z."""
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g) - 0.5) * 2 * spread + torch.tensor([0.0, 0.0, depth])
+    quats = torch.randn(n, 4, generator=g)
+    lo, hi = np.log(scale[0]), np.log(scale[1])
+    scales = torch.exp(torch.rand(n, 3, generator=g) * (hi - lo) + lo)
+    opacities = torch.rand(n, generator=g) * 0.9 + 0.05
+    colors = torch.rand(n, channels, generator=g)
+    background = torch.rand(channels, generator=g)
+    f = 0.9 * width
+    return Scene(means, quats, scales, opacities, colors, torch.eye(4), intrinsics(f, f, width / 2, height / 2),
+                 width, height, background, kwargs)
+
+
+def reference_kwargs(kwargs):
+    """Rasterize options → reference options, with thresholds rounded to float32 as the kernels see them."""
+    out = {}
+    f32 = lambda v: float(np.float32(v))  # noqa: E731
+    for key, value in kwargs.items():
+        if key in ("near_plane", "far_plane", "eps2d", "alpha_max", "transmittance_min", "alpha_min", "radius_clip"):
+            out[key] = f32(value)
+        elif key in ("tile_size", "antialiased", "radius_rule"):
+            out[key] = value
+    out.setdefault("near_plane", f32(0.01))
+    out.setdefault("eps2d", f32(0.3))
+    out.setdefault("alpha_min", f32(1.0 / 255.0))
+    out.setdefault("alpha_max", f32(0.999))
+    out.setdefault("transmittance_min", f32(1e-4))
+    return out
+
+
+def render_both(scene: Scene, seed=1):
+    """Render with ``rasterize`` and the reference; backprop the same random cotangents through both.
+
+    Returns (ours, ref): dicts with image, alpha, depth and the gradient of every input.
+    """
+    g = torch.Generator().manual_seed(seed)
+    h, w, c = scene.height, scene.width, scene.colors.shape[1]
+    w_img = torch.randn(h, w, c, generator=g, dtype=torch.float64)
+    w_alpha = torch.randn(h, w, 1, generator=g, dtype=torch.float64)
+    w_depth = torch.randn(h, w, 1, generator=g, dtype=torch.float64)
+    results = []
+    for dtype in (torch.float32, torch.float64):
+        inputs = {name: getattr(scene, name).detach().to(dtype).requires_grad_(True) for name in DIFF_INPUTS}
+        if dtype == torch.float32:
+            image, alpha, info = rasterize(**inputs, viewmat=scene.viewmat, K=scene.K, width=w, height=h,
+                                           render_depth="accumulated", **scene.kwargs)
+            depth = info["depth"]
+        else:
+            image, alpha, depth, _ = reference.render(**inputs, viewmat=scene.viewmat.double(), K=scene.K.double(),
+                                                      width=w, height=h, **reference_kwargs(scene.kwargs))
+        loss = (image.double() * w_img).sum() + (alpha.double() * w_alpha).sum() + (depth.double() * w_depth).sum()
+        loss.backward()
+        out = {"image": image.detach().double(), "alpha": alpha.detach().double(), "depth": depth.detach().double()}
+        for name, t in inputs.items():
+            out["grad_" + name] = t.grad.double() if t.grad is not None else torch.zeros_like(t, dtype=torch.float64)
+        results.append(out)
+    return results
+
+
+def relative_error(a, b):
+    """‖a − b‖ / ‖b‖, or ‖a‖ when the reference is exactly zero."""
+    denom = b.norm()
+    return float((a - b).norm() / denom) if denom > 0 else float(a.norm())
+
+
+def assert_matches_reference(scene: Scene, image_tol=IMAGE_TOL, grad_tol=GRAD_TOL, depth_tol=None):
+    ours, ref = render_both(scene)
+    for key in ("image", "alpha"):
+        err = float((ours[key] - ref[key]).abs().max()) if ours[key].numel() else 0.0
+        assert err <= image_tol, f"{key} max error {err:.3g} > {image_tol}"
+    depth_scale = max(1.0, float(ref["depth"].abs().max())) if ref["depth"].numel() else 1.0
+    depth_err = float((ours["depth"] - ref["depth"]).abs().max()) / depth_scale if ref["depth"].numel() else 0.0
+    assert depth_err <= (depth_tol or image_tol), f"depth relative error {depth_err:.3g}"
+    for name in DIFF_INPUTS:
+        g, gr = ours["grad_" + name], ref["grad_" + name]
+        assert torch.isfinite(g).all(), f"non-finite gradient for {name}"
+        err = relative_error(g, gr)
+        assert err <= grad_tol, f"gradient of {name}: relative error {err:.3g} > {grad_tol}"
+    return ours, ref
