@@ -25,8 +25,8 @@ QUAT_NORM_FLOOR = 1.0e-12
 @wp.func
 def quat_to_rotmat(q: wp.vec4) -> wp.mat33:
     """w-first quaternion (not necessarily normalised) → rotation matrix."""
-    n = wp.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    inv = 1.0 / wp.max(n, QUAT_NORM_FLOOR)
+    # Floor the squared norm, not the norm: sqrt's derivative at 0 would be inf (NaN gradients).
+    inv = 1.0 / wp.sqrt(wp.max(wp.dot(q, q), QUAT_NORM_FLOOR * QUAT_NORM_FLOOR))
     w = q[0] * inv
     x = q[1] * inv
     y = q[2] * inv

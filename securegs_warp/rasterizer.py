@@ -155,10 +155,13 @@ def _validated(means, quats, scales, opacities, colors, viewmat, K, width, heigh
     return tuple(t.float().contiguous() for t in named.values())
 
 
-def _wp(t: torch.Tensor, dtype, grad: bool = False):
-    """Warp view of a contiguous torch tensor; with ``grad``, a zeroed torch-backed gradient too."""
+def _wp(t: torch.Tensor, dtype, grad: bool = False, retain_grad: bool = False):
+    """Warp view of a contiguous torch tensor; with ``grad``, a zeroed torch-backed gradient too.
+
+    ``retain_grad`` keeps the gradient of an intermediate array after the tape has consumed it.
+    """
     if grad:
-        return wp.from_torch(t, dtype=dtype, requires_grad=True, grad=torch.zeros_like(t))
+        return wp.from_torch(t, dtype=dtype, requires_grad=True, grad=torch.zeros_like(t), retain_grad=retain_grad)
     return wp.from_torch(t, dtype=dtype, requires_grad=False)
 
 
@@ -187,7 +190,7 @@ class _Rasterize(torch.autograd.Function):
             depths = torch.zeros(n, **f32)
             opac_out = torch.zeros(n, **f32)
             radii = torch.zeros(n, 2, device=tdev, dtype=torch.int32)
-            w_means2d = _wp(means2d, wp.vec2, grad=True)
+            w_means2d = _wp(means2d, wp.vec2, grad=True, retain_grad=True)  # densification statistics
             w_conics = _wp(conics, wp.vec3, grad=True)
             w_depths = _wp(depths, wp.float32, grad=True)
             w_opac_out = _wp(opac_out, wp.float32, grad=True)

@@ -112,5 +112,7 @@ def assert_matches_reference(scene: Scene, image_tol=IMAGE_TOL, grad_tol=GRAD_TO
         g, gr = ours["grad_" + name], ref["grad_" + name]
         assert torch.isfinite(g).all(), f"non-finite gradient for {name}"
         err = relative_error(g, gr)
-        assert err <= grad_tol, f"gradient of {name}: relative error {err:.3g} > {grad_tol}"
+        worst = int((g - gr).abs().flatten().argmax()) if g.numel() else -1
+        assert err <= grad_tol, (f"gradient of {name}: relative error {err:.3g} > {grad_tol} "
+                                 f"(worst entry {worst}: {g.flatten()[worst]:.6g} vs {gr.flatten()[worst]:.6g})")
     return ours, ref

@@ -1,0 +1,272 @@
+"""rasterize against the float64 dense reference: images and every input gradient, random scenes,
+every option variant, and the hard cases that must stay finite and exact."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import reference
+from raster_cases import Scene, assert_matches_reference, intrinsics, random_scene, render_both
+from securegs_warp import rasterize
+
+
+# ---------------------------------------------------------------------------------------------
+# Random scenes and option variants
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_scenes_match_reference(seed):
+    assert_matches_reference(random_scene(seed, n=80))
+
+
+@pytest.mark.parametrize("channels", [1, 16])
+def test_channel_counts(channels):
+    assert_matches_reference(random_scene(3, n=50, channels=channels))
+
+
+@pytest.mark.parametrize("tile_size", [8, 32])
+def test_tile_sizes(tile_size):
+    assert_matches_reference(random_scene(4, n=50, tile_size=tile_size))
+
+
+@pytest.mark.parametrize("radius_rule", ["3sigma", "tight"])
+def test_radius_rules(radius_rule):
+    assert_matches_reference(random_scene(5, n=50, radius_rule=radius_rule))
+
+
+def test_antialiased():
+    assert_matches_reference(random_scene(6, n=50, scale=(0.001, 0.1), antialiased=True))
+
+
+def test_changed_thresholds():
+    assert_matches_reference(random_scene(7, n=80, alpha_min=0.02, alpha_max=0.99, transmittance_min=0.05,
+                                          eps2d=0.1, near_plane=3.5, far_plane=4.6))
+
+
+def test_expected_depth_is_accumulated_over_alpha():
+    s = random_scene(8, n=40)
+    args = (s.means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height)
+    _, alpha, info_acc = rasterize(*args, render_depth="accumulated")
+    _, _, info_exp = rasterize(*args, render_depth="expected")
+    assert torch.allclose(info_exp["depth"], info_acc["depth"] / alpha.clamp_min(1e-10))
+    covered = alpha[..., 0] > 0.5
+    assert covered.any()
+    d = info_exp["depth"][..., 0][covered]
+    assert float(d.min()) > 2.0 and float(d.max()) < 6.5  # depths of the scene, 4 ± 1.2 ± extent
+
+
+def test_info_outputs():
+    s = random_scene(9, n=30)
+    s.means[0] = torch.tensor([0.0, 0.0, -1.0])  # behind the camera
+    _, _, info = rasterize(s.means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height)
+    assert info["radii"].shape == (30, 2) and info["radii"].dtype == torch.int32
+    assert (info["radii"][0] == 0).all()
+    assert (info["radii"] > 0).all(dim=1).sum() > 20
+    assert info["n_intersections"] > 0
+    ref2d, _, ref_depth, _, ref_radii = reference.project(s.means.double(), s.quats.double(), s.scales.double(),
+                                                          s.opacities.double(), s.viewmat.double(), s.K.double(),
+                                                          s.width, s.height)
+    vis = info["radii"][:, 0] > 0
+    assert torch.equal(vis, ref_radii[:, 0] > 0)
+    assert torch.allclose(info["means2d"][vis].double(), ref2d[vis], atol=1e-4)
+    assert torch.allclose(info["depths"][vis].double(), ref_depth[vis], atol=1e-6)
+
+
+def test_means2d_grad_for_densification():
+    s = random_scene(10, n=30)
+    means = s.means.clone().requires_grad_(True)
+    image, _, info = rasterize(means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height)
+    image.sum().backward()
+    g = info["means2d_grad"]
+    assert g.shape == (30, 2) and torch.isfinite(g).all()
+    visible = info["radii"][:, 0] > 0
+    assert (g[visible].norm(dim=1) > 0).any() and (g[~visible] == 0).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# Hard cases: each must be finite and match the reference
+
+
+def _scene(means, quats=None, scales=None, opacities=None, colors=None, width=32, height=24, viewmat=None,
+           K=None, **kwargs):
+    n = means.shape[0]
+    g = torch.Generator().manual_seed(n)
+    return Scene(
+        means=means.float(),
+        quats=torch.randn(n, 4, generator=g) if quats is None else quats.float(),
+        scales=_aniso(n, 0.1) if scales is None else scales.float(),
+        opacities=torch.full((n,), 0.7) if opacities is None else opacities.float(),
+        colors=torch.rand(n, 3, generator=g) if colors is None else colors.float(),
+        viewmat=torch.eye(4) if viewmat is None else viewmat.float(),
+        K=intrinsics(30.0, 30.0, width / 2, height / 2) if K is None else K,
+        width=width, height=height, background=torch.tensor([0.2, 0.3, 0.4]), kwargs=kwargs,
+    )
+
+
+def _aniso(n, size):
+    """[n, 3] anisotropic scales around ``size``: with isotropic ones rotations would not matter
+    and their gradients would be exactly zero, which a relative error cannot check."""
+    return size * torch.tensor([1.0, 0.6, 1.4]).repeat(n, 1)
+
+
+def _grid_means(n, depth=3.0, spread=1.0, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 3, generator=g) - 0.5) * 2 * spread + torch.tensor([0.0, 0.0, depth])
+
+
+def test_scales_from_1e_minus7_to_1e3():
+    n = 40
+    scales = torch.logspace(-7, 3, n)[:, None] * torch.tensor([1.0, 0.7, 1.3])
+    scales = scales[torch.randperm(n, generator=torch.Generator().manual_seed(0))]
+    assert_matches_reference(_scene(_grid_means(n, depth=4.0), scales=scales))
+
+
+def test_anisotropy_1e6():
+    n = 30
+    g = torch.Generator().manual_seed(1)
+    scales = torch.tensor([0.3, 3e-7, 0.3]).repeat(n, 1)[:, torch.randperm(3, generator=g)]
+    assert_matches_reference(_scene(_grid_means(n), scales=scales))
+
+
+def test_unnormalised_and_near_zero_quaternions():
+    n = 24
+    g = torch.Generator().manual_seed(2)
+    quats = torch.randn(n, 4, generator=g)
+    quats[:6] *= 1e3
+    quats[6:12] *= 1e-3
+    quats[12:18] *= 1e-20
+    quats[18:] = 0.0
+    ours, _ = assert_matches_reference(_scene(_grid_means(n), quats=quats, scales=torch.rand(n, 3, generator=g) * 0.3))
+    assert torch.isfinite(ours["grad_quats"]).all()
+
+
+def test_gaussians_behind_camera_and_at_near_plane():
+    near = 0.01
+    means = torch.tensor([
+        [0.0, 0.0, -1.0], [0.1, 0.0, -near],  # behind the camera
+        [0.0, 0.0, 0.0],  # in the camera centre
+        [0.001, 0.001, near],  # exactly on the near plane
+        [-0.002, 0.0, near * 1.001], [0.0, 0.003, near * 1.5],  # just in front of it
+        [0.0, 0.0, near * 0.999],  # just behind it
+        [0.2, 0.1, 2.0], [-0.3, 0.2, 3.0],
+    ])
+    scales = torch.tensor([0.001, 0.0005, 0.002]).repeat(9, 1)
+    scales[7:] = torch.tensor([0.2, 0.1, 0.3])  # anisotropic, so that rotations matter
+    ours, _ = assert_matches_reference(_scene(means, scales=scales, near_plane=near))
+    _, _, info = rasterize(means, torch.randn(9, 4), scales, torch.full((9,), 0.7), torch.rand(9, 3), torch.eye(4),
+                           intrinsics(30.0, 30.0, 16, 12), 32, 24)
+    assert (info["radii"][[0, 1, 2, 6]] == 0).all()
+    assert (info["radii"][3] > 0).all()
+
+
+def test_far_outside_frustum_and_straddling_border():
+    means = torch.tensor([
+        [100.0, 0.0, 1.0], [-50.0, 80.0, 2.0], [0.0, -300.0, 1.0],  # far outside: clamped Jacobian
+        [8.0, 0.0, 2.0], [0.0, -5.0, 1.5],  # large, just outside: reach into the image
+        [1.05, 0.0, 2.0], [-1.07, 0.3, 2.0], [0.2, 0.79, 2.0], [-0.4, -0.8, 2.0],  # on the borders
+    ])
+    scales = torch.cat([_aniso(3, 30.0), _aniso(2, 6.0), _aniso(4, 0.2)])
+    assert_matches_reference(_scene(means, scales=scales))
+
+
+def test_opacities_exactly_zero_and_one():
+    n = 30
+    opac = torch.tensor([0.0, 1.0, 0.5]).repeat(10)
+    ours, _ = assert_matches_reference(_scene(_grid_means(n), opacities=opac, scales=_aniso(n, 0.3)))
+    assert (ours["grad_opacities"][0::3] == 0).all()  # culled
+
+
+def test_hundreds_of_layers_on_one_pixel():
+    # 600 layers along the optical axis: a translucent stack crossing several 256-Gaussian batches,
+    # then opaque layers that end it before the transmittance floor.
+    n_thin, n_opaque = 500, 100
+    z = torch.cat([torch.linspace(2.0, 3.0, n_thin), torch.linspace(3.01, 4.0, n_opaque)])
+    means = torch.stack([torch.zeros_like(z), torch.zeros_like(z), z], dim=1)
+    means[:, :2] += torch.randn(n_thin + n_opaque, 2, generator=torch.Generator().manual_seed(3)) * 0.01
+    opac = torch.cat([torch.full((n_thin,), 0.015), torch.full((n_opaque,), 0.6)])
+    scales = _aniso(n_thin + n_opaque, 0.05)
+    ours, ref = assert_matches_reference(_scene(means, opacities=opac, scales=scales, width=16, height=16))
+    assert float(ref["alpha"].max()) > 0.999  # the stack really does saturate
+
+
+def test_coordinates_of_magnitude_1e4():
+    offset = torch.tensor([1.0e4, -2.0e4, 1.5e4])
+    viewmat = torch.eye(4)
+    viewmat[:3, 3] = -offset
+    assert_matches_reference(_scene(_grid_means(40) + offset, viewmat=viewmat))
+
+
+def test_equal_depths():
+    n = 30
+    means = _grid_means(n)
+    means[:, 2] = 3.0
+    assert_matches_reference(_scene(means, scales=_aniso(n, 0.3)))
+
+
+def test_fx_neq_fy_and_off_centre_principal_point():
+    s = random_scene(11, n=60, width=36, height=28)
+    s.K = intrinsics(40.0, 22.0, 9.3, 20.1)
+    assert_matches_reference(s)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (37, 23), (17, 1)])
+def test_odd_image_sizes(size):
+    w, h = size
+    s = random_scene(12, n=40, width=w, height=h)
+    s.K = intrinsics(20.0, 20.0, w / 2, h / 2)
+    s.means[:, 2] += 2.0
+    assert_matches_reference(s)
+
+
+def test_no_gaussians():
+    s = random_scene(13, n=0)
+    ours, _ = assert_matches_reference(s)
+    assert torch.allclose(ours["image"], s.background.double().expand(s.height, s.width, 3))
+    assert (ours["alpha"] == 0).all()
+
+
+@pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmat", "K", "background"])
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_non_finite_input_names_the_tensor(name, bad):
+    s = random_scene(14, n=5)
+    args = dict(means=s.means, quats=s.quats, scales=s.scales, opacities=s.opacities, colors=s.colors,
+                viewmat=s.viewmat, K=s.K, width=s.width, height=s.height, background=s.background)
+    args[name] = args[name].clone()
+    args[name].view(-1)[0] = bad
+    with pytest.raises(ValueError, match=rf"non-finite .*\b{name}\b"):
+        rasterize(**args)
+
+
+def test_bad_shapes_and_options_raise():
+    s = random_scene(15, n=5)
+    args = (s.means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height)
+    with pytest.raises(ValueError, match="quats"):
+        rasterize(s.means, s.quats[:, :3], *args[2:])
+    with pytest.raises(ValueError, match="colors"):
+        rasterize(*args[:4], s.colors[:3], *args[5:])
+    with pytest.raises(ValueError, match="background"):
+        rasterize(*args, background=torch.zeros(4))
+    with pytest.raises(ValueError, match="tile_size"):
+        rasterize(*args, tile_size=12)
+    with pytest.raises(ValueError, match="width and height"):
+        rasterize(*args[:7], 0, 10)
+    with pytest.raises(TypeError):
+        rasterize(*args, not_an_option=1)
+
+
+def test_gradients_flow_from_any_subset_of_outputs():
+    s = random_scene(16, n=20)
+    means = s.means.clone().requires_grad_(True)
+    _, alpha, _ = rasterize(means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height)
+    alpha.sum().backward()  # image not used: its cotangent is absent
+    assert torch.isfinite(means.grad).all() and means.grad.abs().sum() > 0
+
+
+def test_random_scenes_float64_consistency_with_itself():
+    """The same inputs give bit-identical images twice (binning and sort are deterministic)."""
+    s = random_scene(17, n=60)
+    a, _ = render_both(s)
+    b, _ = render_both(s)
+    assert torch.equal(a["image"], b["image"])
+    assert np.isfinite(a["image"].numpy()).all()
