@@ -1,0 +1,206 @@
+"""Per-view decoding of anchors into neural Gaussians (Scaffold-GS ``generate_neural_gaussians``),
+and the visible-anchor prefilter that decides which anchors to decode.
+
+The decoding is parameterised by a set of heads and an offset source, so one function serves both
+SecureGS passes: the public pass uses the public :class:`~.heads.ScaffoldHeads` and the stored
+offsets (``mu = x_v + O_v * l_v``); the hidden pass uses the private heads and an offset predictor
+(``mu = x_v + F_o(f̂_v, delta_vc, d_vc)``) passed as ``offset_source``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+
+from .anchors import AnchorModel
+from .heads import ScaffoldHeads
+
+
+@dataclass
+class AnchorViewInputs:
+    """What an offset source may use, for the Nv visible anchors of one view.
+
+    Attributes:
+        anchor_index: [Nv] long, indices of the visible anchors in the model.
+        xyz: [Nv, 3] anchor positions.
+        feat: [Nv, d] blended anchor features f̂ (the raw features when the heads have no bank).
+        ob_view: [Nv, 3] unit directions camera -> anchor.
+        ob_dist: [Nv, 1] camera-anchor distances.
+        scaling: [Nv, 6] linear scalings ``exp(model.scaling)``.
+        offsets: [Nv, k, 3] the stored offsets ``model.offsets``.
+    """
+
+    anchor_index: torch.Tensor
+    xyz: torch.Tensor
+    feat: torch.Tensor
+    ob_view: torch.Tensor
+    ob_dist: torch.Tensor
+    scaling: torch.Tensor
+    offsets: torch.Tensor
+
+
+OffsetSource = Callable[[AnchorViewInputs], torch.Tensor]
+"""Maps :class:`AnchorViewInputs` to world-space displacements [Nv, k, 3] of the k Gaussians from
+their anchor."""
+
+
+def stored_offsets(inputs: AnchorViewInputs) -> torch.Tensor:
+    """Scaffold-GS's explicit offsets: ``offsets * scaling[:, :3]``, [Nv, k, 3]."""
+    return inputs.offsets * inputs.scaling[:, None, :3]
+
+
+def generate_neural_gaussians(
+    model: AnchorModel,
+    heads: ScaffoldHeads,
+    camera_center: torch.Tensor,
+    visible_mask: torch.Tensor | None = None,
+    *,
+    camera_index: int | None = None,
+    offset_source: OffsetSource = stored_offsets,
+) -> dict[str, torch.Tensor]:
+    """Decode the visible anchors into the Gaussians of one view, exactly as Scaffold-GS does.
+
+    For each visible anchor: ``ob_view = x_v - camera_center``, ``ob_dist = |ob_view|``, ``ob_view``
+    normalised; the feature is blended by the heads' feature bank if they have one; the heads give
+    per-Gaussian opacity (tanh), covariance (7) and colour. Gaussian j of anchor v is kept iff its
+    opacity > 0; then ``scale = exp(l_v[3:]) * sigmoid(cov[:3])``, ``quat = normalize(cov[3:7])``,
+    ``mean = x_v + offset_source(...)[v, j]``.
+
+    Args:
+        model: the anchors (N of them, k offsets, feature dimension d).
+        heads: the heads to decode with (same d and k as the model).
+        camera_center: [3] camera position in world space.
+        visible_mask: [N] bool, the anchors to decode (see :func:`visible_anchor_mask`); None: all.
+        camera_index: camera row of the heads' appearance embedding, when they have one.
+        offset_source: where the Gaussians sit relative to their anchor; default the stored offsets.
+
+    Returns:
+        dict with M kept Gaussians out of Nv * k decoded (Gaussian j of the i-th visible anchor is
+        entry ``i * k + j`` of the [Nv * k] tensors):
+
+        * ``means`` [M, 3], ``quats`` [M, 4] (w first, unit), ``scales`` [M, 3] (linear; also what
+          the volume regulariser ``scales.prod(1).mean()`` uses), ``opacities`` [M] (in (0, 1)),
+          ``colors`` [M, 3]: rasterizer inputs.
+        * ``anchor_index`` [M] long: the model anchor each Gaussian came from.
+        * ``neural_opacity`` [Nv * k]: raw tanh opacities, negative ones included (densification's
+          opacity statistics).
+        * ``mask`` [Nv * k] bool: opacity > 0, which of the decoded Gaussians were kept.
+        * ``visible_mask`` [N] bool: the anchors decoded.
+    """
+    if heads.feat_dim != model.feat_dim or heads.n_offsets != model.n_offsets:
+        raise ValueError(
+            f"heads decode d={heads.feat_dim}, k={heads.n_offsets} but the anchors have "
+            f"d={model.feat_dim}, k={model.n_offsets}"
+        )
+    device = model.xyz.device
+    if visible_mask is None:
+        visible_mask = torch.ones(model.num_anchors, dtype=torch.bool, device=device)
+    anchor_index = visible_mask.nonzero()[:, 0]
+    k = model.n_offsets
+
+    xyz = model.xyz[anchor_index]
+    ob_view = xyz - camera_center.to(xyz)
+    ob_dist = ob_view.norm(dim=1, keepdim=True)
+    ob_view = ob_view / ob_dist
+    feat = heads.blend_features(model.feat[anchor_index], ob_view, ob_dist)
+    scaling = torch.exp(model.scaling[anchor_index])
+    inputs = AnchorViewInputs(anchor_index, xyz, feat, ob_view, ob_dist, scaling, model.offsets[anchor_index])
+
+    neural_opacity, cov, color = heads(feat, ob_view, ob_dist, camera_index)
+    displacement = offset_source(inputs)  # [Nv, k, 3]
+
+    neural_opacity = neural_opacity.reshape(-1)
+    mask = neural_opacity > 0.0
+    # Gaussian i*k + j belongs to visible anchor i: select per-anchor quantities by that anchor.
+    parent = torch.arange(anchor_index.shape[0], device=device).repeat_interleave(k)[mask]
+    cov = cov.reshape(-1, 7)[mask]
+    return {
+        "means": xyz[parent] + displacement.reshape(-1, 3)[mask],
+        "quats": F.normalize(cov[:, 3:7], dim=-1),
+        "scales": scaling[parent, 3:] * torch.sigmoid(cov[:, :3]),
+        "opacities": neural_opacity[mask],
+        "colors": color.reshape(-1, 3)[mask],
+        "anchor_index": anchor_index[parent],
+        "neural_opacity": neural_opacity,
+        "mask": mask,
+        "visible_mask": visible_mask,
+    }
+
+
+def camera_center_from_viewmat(viewmat: torch.Tensor) -> torch.Tensor:
+    """Camera position [3] of a world-to-camera ``viewmat`` [4, 4]: ``-R^T t``."""
+    return -viewmat[:3, :3].T @ viewmat[:3, 3]
+
+
+@torch.no_grad()
+def visible_anchor_mask(
+    model: AnchorModel,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    eps2d: float = 0.3,
+) -> torch.Tensor:
+    """Anchors whose footprint reaches the image, [N] bool (Scaffold-GS ``prefilter_voxel``).
+
+    Scaffold-GS runs its rasterizer's preprocessing on the anchors, with the anchor rotation and the
+    offset scaling ``exp(scaling[:, :3])`` as a Gaussian, and keeps those with radius > 0. We compute
+    that test in torch (no dependency on the Warp rasterizer, no gradients), as 3DGS / gsplat's
+    classic projection does: depth > ``near_plane`` (gsplat's default; 3DGS uses 0.2); EWA 2D
+    covariance with the Jacobian's x/z, y/z clamped to 1.3x the field of view, plus ``eps2d`` on the
+    diagonal; radius ``ceil(3 sqrt(largest eigenvalue))`` pixels; visible iff the square of that
+    half-width around the projected centre ``(fx x/z + cx, fy y/z + cy)`` overlaps the image. 3DGS
+    tests the overlap in 16-pixel tiles, so it keeps a few more anchors near the border than we do.
+
+    Args:
+        viewmat: [4, 4] world-to-camera, OpenCV axes.
+        K: [3, 3] intrinsics.
+    """
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    p = model.xyz @ R.T + t
+    x, y, z = p.unbind(1)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    in_front = z > near_plane
+    z = torch.where(in_front, z, torch.ones_like(z))  # keep the maths finite behind the camera
+
+    rot = _quat_to_rotmat(F.normalize(model.rotation, dim=1))
+    m = R @ (rot * torch.exp(model.scaling[:, None, :3]))  # [N, 3, 3] camera-space R S
+    cov_cam = m @ m.transpose(1, 2)
+
+    lim_x_pos = (width - cx) / fx + 0.3 * (0.5 * width / fx)
+    lim_x_neg = cx / fx + 0.3 * (0.5 * width / fx)
+    lim_y_pos = (height - cy) / fy + 0.3 * (0.5 * height / fy)
+    lim_y_neg = cy / fy + 0.3 * (0.5 * height / fy)
+    tx = z * torch.clamp(x / z, -lim_x_neg, lim_x_pos)
+    ty = z * torch.clamp(y / z, -lim_y_neg, lim_y_pos)
+    zeros = torch.zeros_like(z)
+    J = torch.stack(
+        [torch.stack([fx / z, zeros, -fx * tx / z**2], dim=1), torch.stack([zeros, fy / z, -fy * ty / z**2], dim=1)],
+        dim=1,
+    )  # [N, 2, 3]
+    cov2d = J @ cov_cam @ J.transpose(1, 2)
+    a, b, c = cov2d[:, 0, 0] + eps2d, cov2d[:, 0, 1], cov2d[:, 1, 1] + eps2d
+    mid = 0.5 * (a + c)
+    l_max = mid + torch.sqrt(torch.clamp(mid**2 - (a * c - b * b), min=0.01))
+    radius = torch.ceil(3.0 * torch.sqrt(l_max))
+
+    u, v = fx * x / z + cx, fy * y / z + cy
+    on_image = (u + radius > 0) & (u - radius < width) & (v + radius > 0) & (v - radius < height)
+    return in_front & on_image
+
+
+def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices [N, 3, 3] of unit quaternions [N, 4], w first."""
+    w, x, y, z = q.unbind(1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=1,
+    ).view(-1, 3, 3)
