@@ -3,7 +3,8 @@
 Pipeline (driven by ``securegs_warp.rasterizer``):
 1. ``count_tiles``: tiles covered by each Gaussian's screen rectangle (int64: 3M Gaussians times
    dozens of tiles overflows int32).
-2. exclusive prefix sum of the counts (``wp.utils.array_scan``) → write offsets, total on the host.
+2. inclusive prefix sum of the counts (``wp.utils.array_scan``): its last entry is the total, read
+   on the host (the render's one synchronisation); each Gaussian writes at ``ends[i] - counts[i]``.
 3. ``emit_intersections``: one 64-bit key per (Gaussian, tile): tile id in the high 32 bits, the
    float32 depth's bit pattern zero-extended in the low 32 (depths are > 0, so their bit patterns
    sort like the values; sign extension would corrupt the tile id).
@@ -54,7 +55,8 @@ def emit_intersections(
     means2d: wp.array(dtype=wp.vec2),
     radii: wp.array(dtype=wp.vec2i),
     depth_bits: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int64),
+    counts: wp.array(dtype=wp.int64),
+    ends: wp.array(dtype=wp.int64),
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
@@ -66,7 +68,7 @@ def emit_intersections(
     if r[0] > 0 and r[1] > 0:
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
         low = wp.int64(depth_bits[i]) & wp.int64(0xFFFFFFFF)
-        k = offsets[i]
+        k = ends[i] - counts[i]
         for ty in range(rect[1], rect[3]):
             for tx in range(rect[0], rect[2]):
                 keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | low

@@ -56,12 +56,7 @@ def projection_kernel(antialiased: bool, radius_rule: str):
         quats: wp.array(dtype=wp.vec4),
         scales: wp.array(dtype=wp.vec3),
         opacities: wp.array(dtype=float),
-        rot: wp.mat33d,
-        trans: wp.vec3d,
-        fx: float,
-        fy: float,
-        cx: float,
-        cy: float,
+        camera: wp.array(dtype=wp.float64),
         width: int,
         height: int,
         near: float,
@@ -76,6 +71,14 @@ def projection_kernel(antialiased: bool, radius_rule: str):
         opacities_out: wp.array(dtype=float),
     ):
         i = wp.tid()
+        # camera = [row-major world-to-camera 4×4, fx, fy, cx, cy], on the device: no host sync.
+        rot = wp.mat33d(camera[0], camera[1], camera[2], camera[4], camera[5], camera[6],
+                        camera[8], camera[9], camera[10])
+        trans = wp.vec3d(camera[3], camera[7], camera[11])
+        fx = wp.float32(camera[16])
+        fy = wp.float32(camera[17])
+        cx = wp.float32(camera[18])
+        cy = wp.float32(camera[19])
         m = means[i]
         # float64 rigid transform (see module docstring), rounded once to float32.
         md = wp.vec3d(wp.float64(m[0]), wp.float64(m[1]), wp.float64(m[2]))

@@ -39,6 +39,11 @@ class RasterOptions:
     antialiased: bool = False
     radius_rule: str = "opacity_aware"
     render_depth: str | None = None
+    # CUDA launch shape only (results do not depend on it): threads per block of the forward and
+    # backward blending kernels. A block owns that many pixels of a tile; the backward's small
+    # blocks make its per-Gaussian gradient reduction a single-warp one.
+    forward_block: int = 256
+    backward_block: int = 32
 
     def __post_init__(self):
         if self.tile_size not in (8, 16, 32):
@@ -55,6 +60,14 @@ class RasterOptions:
             raise ValueError(f"need 0 <= transmittance_min < 1, got {self.transmittance_min}")
         if self.eps2d < 0.0:
             raise ValueError(f"eps2d must be >= 0, got {self.eps2d}")
+        for name in ("forward_block", "backward_block"):
+            b = getattr(self, name)
+            if b < 1 or b & (b - 1) or b > 1024:
+                raise ValueError(f"{name} must be a power of two in [1, 1024], got {b}")
+
+    def block(self, threads: int) -> int:
+        """Block size for a blending kernel: at most one tile, a divisor of its pixel count."""
+        return min(threads, self.tile_size * self.tile_size)
 
 
 def rasterize(
@@ -98,8 +111,10 @@ def rasterize(
             option, or a non-positive image size.
     """
     opts = RasterOptions(**options)
-    tensors = _validated(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
-    means, quats, scales, opacities, colors, viewmat, K, background = tensors
+    named = _validated(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
+    means, quats, scales, opacities, colors, viewmat, K, background = named.values()
+    # Finiteness is checked on the device and read back with the intersection count (one sync).
+    finite = torch.stack([torch.isfinite(t).all() for t in named.values()])
     n = means.shape[0]
     info = {
         "means2d_grad": torch.zeros(n, 2, device=means.device, dtype=torch.float32),
@@ -107,8 +122,10 @@ def rasterize(
         "width": int(width),
         "height": int(height),
     }
+    camera = torch.cat([viewmat.detach().reshape(16), K.detach()[[0, 1, 0, 1], [0, 1, 2, 2]]]).double()
     image, alpha, depth, radii, means2d, conics, depths, opac, n_isect = _Rasterize.apply(
-        means, quats, scales, opacities, colors, background, viewmat, K, int(width), int(height), opts, info
+        means, quats, scales, opacities, colors, background, camera, int(width), int(height), opts, info,
+        (tuple(named), finite),
     )
     info.update(radii=radii, means2d=means2d, conics=conics, depths=depths, opacities=opac, n_intersections=n_isect)
     if opts.render_depth == "accumulated":
@@ -119,7 +136,7 @@ def rasterize(
 
 
 def _validated(means, quats, scales, opacities, colors, viewmat, K, width, height, background):
-    """Check shapes, devices and finiteness; return float32 contiguous tensors (background filled)."""
+    """Check types, shapes and devices; return name → float32 contiguous tensor (background filled)."""
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
              "viewmat": viewmat, "K": K}
     for name, t in named.items():
@@ -147,12 +164,7 @@ def _validated(means, quats, scales, opacities, colors, viewmat, K, width, heigh
             raise ValueError(f"{name} is on {t.device} but means is on {means.device}")
     if int(width) < 1 or int(height) < 1:
         raise ValueError(f"width and height must be >= 1, got {width}x{height}")
-    # One host sync for all finiteness checks.
-    finite = torch.stack([torch.isfinite(t).all() for t in named.values()]).tolist()
-    bad = [name for name, ok in zip(named, finite) if not ok]
-    if bad:
-        raise ValueError(f"non-finite values (NaN or inf) in: {', '.join(bad)}")
-    return tuple(t.float().contiguous() for t in named.values())
+    return {name: t.float().contiguous() for name, t in named.items()}
 
 
 def _wp(t: torch.Tensor, dtype, grad: bool = False, retain_grad: bool = False):
@@ -167,7 +179,7 @@ def _wp(t: torch.Tensor, dtype, grad: bool = False, retain_grad: bool = False):
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, background, viewmat, K, width, height, opts, info):
+    def forward(ctx, means, quats, scales, opacities, colors, background, camera, width, height, opts, info, finite):
         wp.init()  # idempotent; Warp must be up before its devices can be named
         device = wp.device_from_torch(means.device)
         n, c = colors.shape
@@ -196,23 +208,18 @@ class _Rasterize(torch.autograd.Function):
             w_opac_out = _wp(opac_out, wp.float32, grad=True)
             w_radii = _wp(radii, wp.vec2i)
 
-            vm = viewmat.detach().double().cpu()
-            kk = K.detach().double().cpu()
-            rot = wp.mat33d(*vm[:3, :3].flatten().tolist())
-            trans = wp.vec3d(*vm[:3, 3].tolist())
-            fx, fy, cx, cy = (float(kk[0, 0]), float(kk[1, 1]), float(kk[0, 2]), float(kk[1, 2]))
-
+            w_camera = _wp(camera, wp.float64)
             tape = wp.Tape()
             with tape:
                 wp.launch(
                     projection_kernel(opts.antialiased, opts.radius_rule),
                     dim=n,
-                    inputs=[w_means, w_quats, w_scales, w_opac, rot, trans, fx, fy, cx, cy, width, height,
+                    inputs=[w_means, w_quats, w_scales, w_opac, w_camera, width, height,
                             opts.near_plane, opts.far_plane, opts.eps2d, opts.alpha_min, opts.radius_clip],
                     outputs=[w_means2d, w_conics, w_depths, w_radii, w_opac_out],
                 )
 
-            ranges, sorted_ids, n_isect = _bin(w_means2d, w_radii, depths, ts, tiles_x, tiles_y, tdev)
+            ranges, sorted_ids, n_isect = _bin(w_means2d, w_radii, depths, ts, tiles_x, tiles_y, finite)
 
             image = torch.empty(height, width, c, **f32)
             alpha = torch.empty(height, width, 1, **f32)
@@ -228,13 +235,13 @@ class _Rasterize(torch.autograd.Function):
             fwd, bwd = blend_kernels(c, ts, with_depth)
             common = [ranges, sorted_ids, w_means2d, w_conics, w_opac_out, w_colors, w_depths, w_bg,
                       width, height, tiles_x, opts.alpha_min, opts.alpha_max]
-            block = ts * ts
-            wp.launch(fwd, dim=(tiles_x * tiles_y, block), block_dim=block,
+            lanes = ts * ts  # one thread per pixel of a tile
+            wp.launch(fwd, dim=(tiles_x * tiles_y, lanes), block_dim=opts.block(opts.forward_block),
                       inputs=common + [opts.transmittance_min],
                       outputs=[w_image, w_alpha, w_depth_img, w_trans, w_last])
 
             def blend_adjoint():
-                wp.launch(bwd, dim=(tiles_x * tiles_y, block), block_dim=block,
+                wp.launch(bwd, dim=(tiles_x * tiles_y, lanes), block_dim=opts.block(opts.backward_block),
                           inputs=common + [w_trans, w_last, w_image.grad, w_alpha.grad, w_depth_img.grad],
                           outputs=[w_means2d.grad, w_conics.grad, w_opac_out.grad, w_colors.grad,
                                    w_depths.grad, w_bg.grad])
@@ -267,19 +274,27 @@ def _stream(device: torch.device):
     return wp.stream_from_torch(device) if device.type == "cuda" else None
 
 
-def _bin(w_means2d, w_radii, depths, tile_size, tiles_x, tiles_y, tdev):
-    """Sorted (tile, depth) intersections → per-tile ranges [T, 2] and Gaussian ids (Warp arrays)."""
+def _bin(w_means2d, w_radii, depths, tile_size, tiles_x, tiles_y, finite):
+    """Sorted (tile, depth) intersections → per-tile ranges [T, 2] and Gaussian ids (Warp arrays).
+
+    ``finite`` = (input names, [inputs] bool device tensor): read back with the intersection count
+    in the render's single host synchronisation; a non-finite input raises ValueError naming it.
+    """
     n = depths.shape[0]
     n_tiles = tiles_x * tiles_y
     ranges = wp.zeros((n_tiles, 2), dtype=wp.int32)
     counts = wp.empty(n, dtype=wp.int64)
     wp.launch(binning.count_tiles, dim=n, inputs=[w_means2d, w_radii, tile_size, tiles_x, tiles_y], outputs=[counts])
-    offsets = wp.empty(n, dtype=wp.int64)
+    ends = wp.empty(n, dtype=wp.int64)
+    names, ok = finite
+    host = [0] + ok.tolist() if n == 0 else None
     if n > 0:
-        wp.utils.array_scan(counts, offsets, inclusive=False)
-        n_isect = int(wp.to_torch(offsets)[-1].item() + wp.to_torch(counts)[-1].item())
-    else:
-        n_isect = 0
+        wp.utils.array_scan(counts, ends, inclusive=True)
+        host = torch.cat([wp.to_torch(ends)[-1:], ok.long()]).tolist()
+    bad = [name for name, flag in zip(names, host[1:]) if not flag]
+    if bad:
+        raise ValueError(f"non-finite values (NaN or inf) in: {', '.join(bad)}")
+    n_isect = int(host[0])
     if n_isect >= 2**31 - 1:
         raise ValueError(f"{n_isect} tile intersections exceed the sort's int32 index range")
     # radix_sort_pairs needs room for 2x the pairs (its scratch space); keep at least one slot.
@@ -288,7 +303,7 @@ def _bin(w_means2d, w_radii, depths, tile_size, tiles_x, tiles_y, tdev):
     if n_isect > 0:
         depth_bits = wp.from_torch(depths.view(torch.int32), dtype=wp.int32)
         wp.launch(binning.emit_intersections, dim=n,
-                  inputs=[w_means2d, w_radii, depth_bits, offsets, tile_size, tiles_x, tiles_y],
+                  inputs=[w_means2d, w_radii, depth_bits, counts, ends, tile_size, tiles_x, tiles_y],
                   outputs=[keys, values])
         tile_bits = max(1, int(n_tiles - 1).bit_length())
         wp.utils.radix_sort_pairs(keys, values, n_isect, end_bit=32 + tile_bits)

@@ -1,5 +1,6 @@
 """Scenes for the rasterizer tests and the comparison of ``rasterize`` with the float64 reference."""
 import dataclasses
+import os
 
 import numpy as np
 import torch
@@ -9,6 +10,9 @@ from securegs_warp import rasterize
 
 IMAGE_TOL = 1e-4
 GRAD_TOL = 1e-3
+# The device ``rasterize`` runs on in these comparisons: the CPU, or CUDA on a GPU machine
+# (SECUREGS_TEST_DEVICE=cuda pytest tests/test_rasterizer.py); the reference always runs on the CPU.
+TEST_DEVICE = os.environ.get("SECUREGS_TEST_DEVICE", "cpu")
 DIFF_INPUTS = ("means", "quats", "scales", "opacities", "colors", "background")
 
 
@@ -79,9 +83,11 @@ def render_both(scene: Scene, seed=1):
     for dtype in (torch.float32, torch.float64):
         inputs = {name: getattr(scene, name).detach().to(dtype).requires_grad_(True) for name in DIFF_INPUTS}
         if dtype == torch.float32:
-            image, alpha, info = rasterize(**inputs, viewmat=scene.viewmat, K=scene.K, width=w, height=h,
+            on_device = {name: t.to(TEST_DEVICE) for name, t in inputs.items()}
+            image, alpha, info = rasterize(**on_device, viewmat=scene.viewmat.to(TEST_DEVICE),
+                                           K=scene.K.to(TEST_DEVICE), width=w, height=h,
                                            render_depth="accumulated", **scene.kwargs)
-            depth = info["depth"]
+            image, alpha, depth = image.cpu(), alpha.cpu(), info["depth"].cpu()
         else:
             image, alpha, depth, _ = reference.render(**inputs, viewmat=scene.viewmat.double(), K=scene.K.double(),
                                                       width=w, height=h, **reference_kwargs(scene.kwargs))
