@@ -1,0 +1,217 @@
+"""Cameras, the scene container, camera paths, and reading one image file.
+
+Conventions (DESIGN.md): ``viewmat`` is world-to-camera (4, 4) with OpenCV camera axes (x right,
+y down, z forward); ``K`` is (3, 3) in pixels with pixel centres at +0.5; images are float32 in
+[0, 1], (H, W, 3), with alpha (H, W, 1).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataError
+
+
+def _optional_image(value, height: int, width: int, channels: int, what: str, camera: str):
+    """value as a float32 (height, width, channels) array, or None; a wrong shape is a DataError."""
+    if value is None:
+        return None
+    array = np.asarray(value, dtype=np.float32)
+    if array.shape != (height, width, channels):
+        raise DataError(
+            f"camera {camera!r}: {what} has shape {array.shape}, expected ({height}, {width}, {channels}) "
+            f"from the camera's {width}x{height} size"
+        )
+    return array
+
+
+@dataclass
+class Camera:
+    """One view: pose, intrinsics and the images seen from it.
+
+    viewmat: (4, 4) float32 world-to-camera, OpenCV axes. K: (3, 3) float32 intrinsics.
+    image: (H, W, 3) float32 in [0, 1] or None. alpha: (H, W, 1) float32 or None.
+    hidden: (H, W, 3) float32 hidden-view image seen from the same pose, or None.
+    hidden_alpha: (H, W, 1) float32 or None.
+    """
+
+    name: str
+    viewmat: np.ndarray
+    K: np.ndarray
+    width: int
+    height: int
+    image: np.ndarray | None = None
+    alpha: np.ndarray | None = None
+    hidden: np.ndarray | None = None
+    hidden_alpha: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.viewmat = np.asarray(self.viewmat, dtype=np.float32)
+        self.K = np.asarray(self.K, dtype=np.float32)
+        if self.viewmat.shape != (4, 4) or self.K.shape != (3, 3):
+            raise DataError(
+                f"camera {self.name!r}: viewmat must be 4x4 and K 3x3, got {self.viewmat.shape}, {self.K.shape}"
+            )
+        self.width, self.height = int(self.width), int(self.height)
+        h, w = self.height, self.width
+        self.image = _optional_image(self.image, h, w, 3, "image", self.name)
+        self.alpha = _optional_image(self.alpha, h, w, 1, "alpha", self.name)
+        self.hidden = _optional_image(self.hidden, h, w, 3, "hidden image", self.name)
+        self.hidden_alpha = _optional_image(self.hidden_alpha, h, w, 1, "hidden alpha", self.name)
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) camera position in world coordinates: -Rᵀt of the viewmat."""
+        rotation, translation = self.viewmat[:3, :3].astype(np.float64), self.viewmat[:3, 3].astype(np.float64)
+        return (-rotation.T @ translation).astype(np.float32)
+
+
+@dataclass
+class SceneData:
+    """A scene ready for training: cameras with their images, and a sparse point cloud.
+
+    points: (N, 3) float32 sparse points (COLMAP's, or a stand-in); colors: (N, 3) float32 in [0, 1].
+    background: (3,) float32 colour that the images show where no geometry is (None when unknown,
+    e.g. real photographs).
+    hidden_kind: None (nothing hidden), "object" (one 3-D object; also views read from a folder of
+    hidden images) or "scene" (a whole second scene), with its views in each Camera's
+    `hidden`/`hidden_alpha`. hidden_level, for objects only: "object" (the object alone, composited
+    over hidden_background, alpha in hidden_alpha) or "scene" (the object inside the scene).
+    hidden_bbox: (2, 3) min and max corner of the hidden geometry in world space;
+    hidden_points: (M, 3) float32 points on the hidden geometry's surface, for security metrics.
+    Both are known only for generated scenes (None for real data).
+    """
+
+    name: str
+    train: list[Camera]
+    test: list[Camera]
+    points: np.ndarray
+    colors: np.ndarray
+    background: np.ndarray | None = None
+    hidden_kind: str | None = None
+    hidden_level: str | None = None
+    hidden_name: str | None = None
+    hidden_background: np.ndarray | None = None
+    hidden_bbox: np.ndarray | None = None
+    hidden_points: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.points = np.asarray(self.points, dtype=np.float32).reshape(-1, 3)
+        self.colors = np.asarray(self.colors, dtype=np.float32).reshape(-1, 3)
+        if len(self.points) != len(self.colors):
+            raise DataError(f"scene {self.name!r}: {len(self.points)} points but {len(self.colors)} colours")
+        for attr in ("background", "hidden_background", "hidden_bbox", "hidden_points"):
+            value = getattr(self, attr)
+            if value is not None:
+                setattr(self, attr, np.asarray(value, dtype=np.float32))
+
+    @property
+    def cameras(self) -> list[Camera]:
+        """Training then test cameras."""
+        return self.train + self.test
+
+    @property
+    def cameras_extent(self) -> float:
+        """Radius of the training cameras around their mean centre, times 1.1 (3DGS's scene scale,
+        which sets learning rates and densification thresholds)."""
+        centers = np.stack([c.center for c in self.train]).astype(np.float64)
+        return 1.1 * float(np.linalg.norm(centers - centers.mean(0), axis=1).max())
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """(4, 4) float32 world-to-camera viewmat of a camera at `eye` looking at `target` (OpenCV axes:
+    image x to the right, y down, i.e. against `up`)."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    forward = target - eye
+    right = np.cross(forward, up)
+    if np.linalg.norm(forward) < 1e-12 or np.linalg.norm(right) < 1e-9 * np.linalg.norm(forward):
+        raise ValueError(f"look_at: eye {eye} and target {target} coincide or look along up {up}")
+    forward /= np.linalg.norm(forward)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    viewmat = np.eye(4)
+    viewmat[:3, :3] = np.stack([right, down, forward])
+    viewmat[:3, 3] = -viewmat[:3, :3] @ eye
+    return viewmat.astype(np.float32)
+
+
+def intrinsics_from_fov(fov_x_degrees: float, width: int, height: int) -> np.ndarray:
+    """(3, 3) float32 K with square pixels, the principal point at the image centre and the given
+    horizontal field of view."""
+    focal = 0.5 * width / math.tan(0.5 * math.radians(fov_x_degrees))
+    return np.array([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]], dtype=np.float32)
+
+
+def orbit_positions(n: int, radius: float, height: float, target=(0.0, 0.0, 0.0), phase: float = 0.0) -> np.ndarray:
+    """(n, 3) camera positions evenly spaced on a horizontal circle of `radius` around `target`,
+    `height` above it (z up), starting at azimuth `phase` radians."""
+    azimuth = phase + 2.0 * np.pi * np.arange(n) / n
+    offsets = np.stack([radius * np.cos(azimuth), radius * np.sin(azimuth), np.full(n, height)], axis=1)
+    return (np.asarray(target, dtype=np.float64) + offsets).astype(np.float32)
+
+
+def hemisphere_positions(
+    n: int, radius: float, target=(0.0, 0.0, 0.0), elevation_degrees=(10.0, 60.0), phase: float = 0.0
+) -> np.ndarray:
+    """(n, 3) camera positions spread evenly over a band of the upper hemisphere of `radius`
+    around `target` (z up): a golden-angle spiral, equal area per camera, from the lowest
+    elevation to the highest."""
+    low, high = (math.sin(math.radians(e)) for e in elevation_degrees)
+    z = low + (high - low) * (np.arange(n) + 0.5) / n
+    azimuth = phase + np.pi * (3.0 - math.sqrt(5.0)) * np.arange(n)
+    ring = np.sqrt(1.0 - z**2)
+    offsets = radius * np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), z], axis=1)
+    return (np.asarray(target, dtype=np.float64) + offsets).astype(np.float32)
+
+
+def cameras_looking_at(eyes: np.ndarray, target, K: np.ndarray, width: int, height: int, prefix: str) -> list[Camera]:
+    """One image-less Camera per row of eyes (n, 3), each looking at target (z up), named
+    ``{prefix}_{index:03d}``."""
+    return [Camera(f"{prefix}_{k:03d}", look_at(eye, target), K, width, height) for k, eye in enumerate(eyes)]
+
+
+def read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read an image file as float32 RGB (H, W, 3) in [0, 1] and alpha (H, W, 1) or None.
+
+    8- and 16-bit, grey or colour, with or without alpha. Raises DataError naming the file when it
+    is missing or cannot be decoded.
+    """
+    import imageio.v3 as iio
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: image file not found")
+    try:
+        raw = iio.imread(path)
+    except Exception as error:  # imageio raises many types for undecodable files; report them all alike
+        raise DataError(f"{path}: cannot read image ({error})") from None
+    scale = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else 1.0
+    pixels = raw.astype(np.float32) / scale
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    if pixels.ndim != 3 or pixels.shape[2] not in (1, 2, 3, 4):
+        raise DataError(f"{path}: unsupported image layout {raw.shape}")
+    pixels = np.clip(pixels, 0.0, 1.0)
+    channels = pixels.shape[2]
+    colour = pixels[..., :3] if channels >= 3 else np.repeat(pixels[..., :1], 3, axis=2)
+    return colour, pixels[..., channels - 1 :] if channels in (2, 4) else None
+
+
+def resize_image(pixels: np.ndarray | None, size: tuple[int, int]) -> np.ndarray | None:
+    """(H, W, C) float32 image resized to size = (width, height) by box filtering (area averaging,
+    the right filter to shrink photographs); None stays None."""
+    from PIL import Image
+
+    if pixels is None or (pixels.shape[1], pixels.shape[0]) == tuple(size):
+        return pixels
+    # PIL resizes float images one channel at a time (mode "F").
+    planes = [Image.fromarray(np.ascontiguousarray(plane)) for plane in pixels.transpose(2, 0, 1)]
+    return np.stack([np.asarray(plane.resize(size, Image.BOX)) for plane in planes], axis=-1)
+
+
+def composite(rgb: np.ndarray, alpha: np.ndarray, background) -> np.ndarray:
+    """rgb (H, W, 3) over a constant background (3,) with alpha (H, W, 1): rgb*a + bg*(1 - a)."""
+    return rgb * alpha + np.asarray(background, dtype=np.float32) * (1.0 - alpha)
