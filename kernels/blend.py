@@ -8,8 +8,9 @@ the block-wide votes and sums reduce over one thread — the same code, correct 
 
 Warp's tape cannot differentiate this loop (dynamic trip count, early exit, multiplicative
 transmittance), so ``backward`` is written by hand, gsplat style: it walks each pixel's list back
-to front, recovering the transmittance from the final one, and reduces every Gaussian's gradient
-over the block before one atomic add per block.
+to front, recovering the transmittance from the final one. A Gaussian's gradient is summed over
+the 32 pixels of a CUDA warp with register shuffles (skipped when no lane touched it) and added
+to global memory by one lane: a block-wide reduction per Gaussian costs several times more.
 
 Per-pixel rule (gsplat 1.5): centre at +0.5; σ = ½(a·dx² + c·dy²) + b·dx·dy, skipped if σ < 0;
 α = min(alpha_max, o·e^{−σ}), skipped if α < alpha_min; stop *before* a Gaussian that would bring
@@ -18,6 +19,41 @@ the transmittance to ≤ t_min; colour = Σ cᵢαᵢTᵢ + T·background.
 import functools
 
 import warp as wp
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    for (int offset = 16; offset > 0; offset >>= 1) x += __shfl_xor_sync(0xffffffff, x, offset);
+#endif
+    return x;
+""")
+def warp_sum(x: float) -> float:
+    """Sum over the 32 lanes of a CUDA warp; on the CPU a thread is its own warp."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return __any_sync(0xffffffff, flag) != 0;
+#else
+    return flag;
+#endif
+""")
+def warp_any(flag: bool) -> bool:
+    """True if any lane of the warp has ``flag`` (CPU: the thread's own flag)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return (threadIdx.x & 31) == 0;
+#else
+    return true;
+#endif
+""")
+def warp_leader() -> bool:
+    """The lane that writes a warp's sum (CPU: every thread writes its own value)."""
+    ...
+
 
 # Gradient vector layout per Gaussian: [d mean2d (2), d conic (3), d opacity (1), d colour (C), d depth].
 _XY, _CONIC, _OPACITY, _COLOR = 0, 2, 5, 6
@@ -207,6 +243,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
             for jj in range(count):
                 j = count - 1 - jj
                 g = GradVec()
+                touched = False
                 if b0 + j <= last:
                     xy = xy_t[j]
                     cn = cn_t[j]
@@ -217,6 +254,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
                     vis = wp.exp(-sigma)
                     alpha = wp.min(alpha_max, op * vis)
                     if sigma >= 0.0 and alpha >= alpha_min:
+                        touched = True
                         ra = 1.0 / (1.0 - alpha)
                         T = T * ra
                         w = alpha * T
@@ -240,16 +278,19 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
                             g[_CONIC + 1] = d_sigma * dx * dy
                             g[_CONIC + 2] = 0.5 * d_sigma * dy * dy
                             g[_OPACITY] = vis * d_alpha
-                total = wp.tile_extract(wp.tile_sum(wp.tile(g, preserve_type=True)), 0)
-                if leader:
-                    gid = ids[j]
-                    wp.atomic_add(v_means2d, gid, wp.vec2(total[_XY], total[_XY + 1]))
-                    wp.atomic_add(v_conics, gid, wp.vec3(total[_CONIC], total[_CONIC + 1], total[_CONIC + 2]))
-                    wp.atomic_add(v_opacities, gid, total[_OPACITY])
-                    for c in range(C):
-                        wp.atomic_add(v_colors, gid, c, total[_COLOR + c])
-                    if wp.static(DEPTH == 1):
-                        wp.atomic_add(v_depths, gid, total[_COLOR + C])
+                # Warp-uniform from here: every lane reaches the shuffles.
+                if warp_any(touched):
+                    for k in range(NG):
+                        g[k] = warp_sum(g[k])
+                    if warp_leader():
+                        gid = ids[j]
+                        wp.atomic_add(v_means2d, gid, wp.vec2(g[_XY], g[_XY + 1]))
+                        wp.atomic_add(v_conics, gid, wp.vec3(g[_CONIC], g[_CONIC + 1], g[_CONIC + 2]))
+                        wp.atomic_add(v_opacities, gid, g[_OPACITY])
+                        for c in range(C):
+                            wp.atomic_add(v_colors, gid, c, g[_COLOR + c])
+                        if wp.static(DEPTH == 1):
+                            wp.atomic_add(v_depths, gid, g[_COLOR + C])
 
     tag = f"c{C}_t{TS}_{'depth' if with_depth else 'nodepth'}"
     forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"

@@ -62,8 +62,9 @@ class RasterOptions:
             raise ValueError(f"eps2d must be >= 0, got {self.eps2d}")
         for name in ("forward_block", "backward_block"):
             b = getattr(self, name)
-            if b < 1 or b & (b - 1) or b > 1024:
-                raise ValueError(f"{name} must be a power of two in [1, 1024], got {b}")
+            # At least one full warp: the backward reduces gradients with 32-lane shuffles.
+            if b < 32 or b & (b - 1) or b > 1024:
+                raise ValueError(f"{name} must be a power of two in [32, 1024], got {b}")
 
     def block(self, threads: int) -> int:
         """Block size for a blending kernel: at most one tile, a divisor of its pixel count."""
