@@ -62,23 +62,35 @@ _XY, _CONIC, _OPACITY, _COLOR = 0, 2, 5, 6
 _BATCH_SHARED_BYTES = 24 * 1024
 
 
-def batch_size(channels: int, tile_size: int, with_depth: bool) -> int:
-    """Gaussians gathered per batch: a block's worth, fewer when feature channels are wide."""
+# On the CPU (one thread per block, direct reads) the batch only paces the walk over the list.
+CPU_BATCH = 32
+
+
+def batch_size(channels: int, block: int, with_depth: bool) -> int:
+    """Gaussians gathered per batch: one per thread of the block (at least 32), fewer when the
+    feature channels are wide enough to overflow the shared-memory budget."""
     per_gaussian = 4 * (1 + 2 + 3 + 1 + channels + int(with_depth))
-    b = tile_size * tile_size
+    b = max(block, 32)
     while b > 32 and b * per_gaussian > _BATCH_SHARED_BYTES:
         b //= 2
     return b
 
 
 @functools.lru_cache(maxsize=None)
-def blend_kernels(channels: int, tile_size: int, with_depth: bool):
-    """(forward, backward) kernels specialised for C channels, one tile size and depth on/off."""
+def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool):
+    """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
+    ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
+
+    ``cooperative``: gather each batch into shared memory once per block (CUDA). Without it each
+    thread reads the Gaussians straight from global memory: the CPU's one-thread blocks would
+    only pay for copying a batch that no other thread reads.
+    """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
     C = channels
     TS = tile_size
-    B = batch_size(channels, tile_size, with_depth)
+    B = batch
+    COOP = cooperative
     DEPTH = 1 if with_depth else 0
     NG = _COLOR + C + DEPTH
     ColorVec = wp.types.vector(length=C, dtype=wp.float32)
@@ -122,27 +134,37 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
         done = not inside
         n_batches = (end - start + B - 1) // B
         for b in range(n_batches):
-            # Block-wide vote: stop when every pixel of the tile is done.
-            n_done = wp.tile_sum(wp.tile(wp.where(done, 1, 0)))
-            if wp.tile_extract(n_done, 0) == wp.block_dim():
-                break
             b0 = start + b * B
-            ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
-            xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-            cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-            op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-            col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
-            if wp.static(DEPTH == 1):
-                dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            if wp.static(COOP):
+                # Block-wide vote: stop when every pixel of the tile is done.
+                n_done = wp.tile_sum(wp.tile(wp.where(done, 1, 0)))
+                if wp.tile_extract(n_done, 0) == wp.block_dim():
+                    break
+                ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
+                xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+                if wp.static(DEPTH == 1):
+                    dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            elif done:
+                break
             count = wp.min(B, end - b0)
             if not done:
                 for j in range(count):
-                    xy = xy_t[j]
-                    cn = cn_t[j]
+                    if wp.static(COOP):
+                        xy = xy_t[j]
+                        cn = cn_t[j]
+                        op = op_t[j]
+                    else:
+                        gid = sorted_ids[b0 + j]
+                        xy = means2d[gid]
+                        cn = conics[gid]
+                        op = opacities[gid]
                     dx = xy[0] - fx
                     dy = xy[1] - fy
                     sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
-                    alpha = wp.min(alpha_max, op_t[j] * wp.exp(-sigma))
+                    alpha = wp.min(alpha_max, op * wp.exp(-sigma))
                     if sigma >= 0.0 and alpha >= alpha_min:
                         next_t = T * (1.0 - alpha)
                         if next_t <= t_min:
@@ -150,9 +172,15 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
                             break
                         w = alpha * T
                         for c in range(C):
-                            acc[c] = acc[c] + col_t[j, c] * w
+                            if wp.static(COOP):
+                                acc[c] = acc[c] + col_t[j, c] * w
+                            else:
+                                acc[c] = acc[c] + colors[gid, c] * w
                         if wp.static(DEPTH == 1):
-                            acc_depth += dep_t[j] * w
+                            if wp.static(COOP):
+                                acc_depth += dep_t[j] * w
+                            else:
+                                acc_depth += depths[gid] * w
                         T = next_t
                         last = b0 + j
         if inside:
@@ -233,21 +261,31 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
             b1 = hi - b * B
             b0 = wp.max(start, b1 - B)
             count = b1 - b0
-            ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
-            xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-            cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-            op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-            col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
-            if wp.static(DEPTH == 1):
-                dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            if wp.static(COOP):
+                ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
+                xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+                if wp.static(DEPTH == 1):
+                    dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
             for jj in range(count):
                 j = count - 1 - jj
                 g = GradVec()
                 touched = False
+                if wp.static(COOP):
+                    gid = ids[j]
+                else:
+                    gid = sorted_ids[b0 + j]
                 if b0 + j <= last:
-                    xy = xy_t[j]
-                    cn = cn_t[j]
-                    op = op_t[j]
+                    if wp.static(COOP):
+                        xy = xy_t[j]
+                        cn = cn_t[j]
+                        op = op_t[j]
+                    else:
+                        xy = means2d[gid]
+                        cn = conics[gid]
+                        op = opacities[gid]
                     dx = xy[0] - fx
                     dy = xy[1] - fy
                     sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
@@ -260,12 +298,18 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
                         w = alpha * T
                         d_alpha = float(0.0)
                         for c in range(C):
-                            col = col_t[j, c]
+                            if wp.static(COOP):
+                                col = col_t[j, c]
+                            else:
+                                col = colors[gid, c]
                             g[_COLOR + c] = w * v_img[c]
                             d_alpha += (col * T - buf[c] * ra) * v_img[c]
                             buf[c] = buf[c] + col * w
                         if wp.static(DEPTH == 1):
-                            dep = dep_t[j]
+                            if wp.static(COOP):
+                                dep = dep_t[j]
+                            else:
+                                dep = depths[gid]
                             g[_COLOR + C] = w * v_d
                             d_alpha += (dep * T - buf_depth * ra) * v_d
                             buf_depth += dep * w
@@ -283,7 +327,6 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
                     for k in range(NG):
                         g[k] = warp_sum(g[k])
                     if warp_leader():
-                        gid = ids[j]
                         wp.atomic_add(v_means2d, gid, wp.vec2(g[_XY], g[_XY + 1]))
                         wp.atomic_add(v_conics, gid, wp.vec3(g[_CONIC], g[_CONIC + 1], g[_CONIC + 2]))
                         wp.atomic_add(v_opacities, gid, g[_OPACITY])
@@ -292,7 +335,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool):
                         if wp.static(DEPTH == 1):
                             wp.atomic_add(v_depths, gid, g[_COLOR + C])
 
-    tag = f"c{C}_t{TS}_{'depth' if with_depth else 'nodepth'}"
+    tag = f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
     forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
     backward.__name__ = backward.__qualname__ = f"blend_backward_{tag}"
     return (
