@@ -86,6 +86,12 @@ class ScaffoldHeads(nn.Module):
     def use_feat_bank(self) -> bool:
         return self.feature_bank_mlp is not None
 
+    def named_mlps(self) -> dict[str, nn.Module]:
+        """The trainable parts, under the names of their learning-rate schedules in Scaffold-GS."""
+        parts = {"mlp_opacity": self.opacity_mlp, "mlp_cov": self.cov_mlp, "mlp_color": self.color_mlp,
+                 "mlp_featurebank": self.feature_bank_mlp, "appearance": self.embedding_appearance}
+        return {name: module for name, module in parts.items() if module is not None}
+
     def bank_weights(self, ob_view: torch.Tensor, ob_dist: torch.Tensor) -> torch.Tensor:
         """Feature-bank weights [N, 3] (softmax, rows sum to 1) for the coarse (every 4th channel),
         middle (every 2nd) and full resolution, from view directions [N, 3] and distances [N, 1]."""

@@ -1,0 +1,41 @@
+"""Held-out evaluation of a trained model: PSNR, SSIM, LPIPS when possible, FPS and size."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .train.losses import psnr, ssim
+
+# LPIPS (AlexNet) needs torchvision's ImageNet weights, which no package ships and nothing here
+# downloads: it is computed only when they are already in torch's hub cache.
+ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
+
+
+def lpips_model(device):
+    """(LPIPS network, None) when it can run offline, else (None, the reason it cannot)."""
+    weights = Path(torch.hub.get_dir()) / "checkpoints" / ALEXNET_WEIGHTS
+    if not weights.is_file():
+        return None, f"LPIPS not computed: AlexNet weights not found at {weights} (nothing is downloaded)"
+    try:
+        import lpips
+    except ImportError:
+        return None, "LPIPS not computed: the `lpips` package is not installed (pip install lpips)"
+    return lpips.LPIPS(net="alex", verbose=False).to(device).eval(), None
+
+
+@torch.no_grad()
+def image_metrics(pairs, device, with_lpips: bool = True) -> dict:
+    """Mean PSNR / SSIM (/ LPIPS) over (render [H,W,3], target [H,W,3]) pairs."""
+    pairs = list(pairs)
+    out = {"psnr": float(np.mean([psnr(a, b) for a, b in pairs])),
+           "ssim": float(np.mean([float(ssim(a.clamp(0, 1), b)) for a, b in pairs]))}
+    net, reason = lpips_model(device) if with_lpips else (None, "LPIPS not requested")
+    if net is None:
+        out["lpips"] = None
+        out["lpips_note"] = reason
+    else:
+        to_net = lambda x: x.clamp(0, 1).permute(2, 0, 1)[None] * 2 - 1  # noqa: E731
+        out["lpips"] = float(np.mean([float(net(to_net(a), to_net(b))) for a, b in pairs]))
+    return out

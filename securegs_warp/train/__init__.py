@@ -1,0 +1,7 @@
+"""Training: losses, learning-rate schedules, densification strategies and the trainer."""
+from .losses import photometric_loss, psnr, ssim, volume_loss
+from .strategy import ScaffoldStrategy
+from .trainer import ScaffoldTrainer, TrainConfig, camera_tensors, render_fps
+
+__all__ = ["ScaffoldStrategy", "ScaffoldTrainer", "TrainConfig", "camera_tensors", "photometric_loss", "psnr",
+           "render_fps", "ssim", "volume_loss"]

@@ -1,0 +1,152 @@
+"""Anchor densification as a strategy object with a hook after backward (gsplat's ``Strategy`` style).
+
+``ScaffoldStrategy`` is Scaffold-GS's schedule: per neural Gaussian it accumulates the screen-space
+gradient norm of its mean, per anchor the opacity its Gaussians reach; every ``update_interval``
+steps it grows anchors where the mean gradient exceeds a threshold and prunes anchors whose
+Gaussians stayed transparent. The SecureGS region-aware strategy subclasses it and replaces
+``growth_threshold``/``step_post_backward``; the state is a dict of tensors so checkpoints hold it.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from ..model import AnchorModel, growth_candidates
+
+# Scaffold-GS's schedule, for 30k iterations.
+_REFERENCE_ITERATIONS = 30_000
+
+
+@dataclasses.dataclass
+class ScaffoldStrategy:
+    grad_threshold: float = 0.0002
+    min_opacity: float = 0.005
+    success_threshold: float = 0.8
+    start_stat: int = 500
+    update_from: int = 1500
+    update_interval: int = 100
+    update_until: int = 15_000
+    update_depth: int = 3
+    update_hierachy_factor: int = 4
+    update_init_factor: int = 16
+
+    @classmethod
+    def for_iterations(cls, iterations: int, **overrides):
+        """Scaffold-GS's schedule scaled to a run of ``iterations`` steps (its own is for 30k).
+
+        The check interval shrinks with the run but not below 20 steps: growing needs a Gaussian
+        to be seen in 40% of the interval's views before its gradient average is trusted.
+        """
+        f = iterations / _REFERENCE_ITERATIONS
+        interval = max(20, round(100 * f))
+        fields = dict(start_stat=round(500 * f), update_from=round(1500 * f), update_interval=interval,
+                      update_until=round(15_000 * f))
+        fields.update(overrides)
+        return cls(**fields)
+
+    # -- state ---------------------------------------------------------------------------------
+
+    def initialize_state(self, model: AnchorModel) -> dict[str, torch.Tensor]:
+        n, k, dev = model.num_anchors, model.n_offsets, model.xyz.device
+        return {
+            "grad_accum": torch.zeros(n * k, device=dev),  # Σ |d loss / d mean2d| (NDC units)
+            "grad_denom": torch.zeros(n * k, device=dev),  # views in which the Gaussian was rendered
+            "opacity_accum": torch.zeros(n, device=dev),  # Σ of the anchor's positive opacities
+            "anchor_denom": torch.zeros(n, device=dev),  # views in which the anchor was visible
+        }
+
+    @staticmethod
+    @torch.no_grad()
+    def accumulate(state: dict, gaussians: dict, info: dict, k: int, prefix: str = "") -> None:
+        """Add one view's statistics (Scaffold-GS ``training_statis``).
+
+        gaussians: the output of ``generate_neural_gaussians`` for the view; info: the matching
+        ``rasterize`` info after backward. ``prefix`` selects a second set of gradient statistics
+        (SecureGS keeps one per branch).
+        """
+        visible = gaussians["visible_mask"]
+        opacity = gaussians["neural_opacity"].detach().clamp_min(0.0).view(-1, k)
+        if not prefix:
+            state["opacity_accum"][visible] += opacity.sum(dim=1)
+            state["anchor_denom"][visible] += 1
+        rows = torch.zeros_like(state[prefix + "grad_denom"], dtype=torch.bool)
+        rows[visible.repeat_interleave(k)] = gaussians["mask"]
+        rendered = info["radii"][:, 0] > 0
+        kept = rows.clone()
+        rows[kept] = rendered
+        # 3DGS measures the mean's gradient in NDC: d/d ndc = d/d pixel · (W/2, H/2).
+        scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=rows.device)
+        state[prefix + "grad_accum"][rows] += (info["means2d_grad"][rendered] * scale).norm(dim=1)
+        state[prefix + "grad_denom"][rows] += 1
+
+    # -- hooks ----------------------------------------------------------------------------------
+
+    def step_post_backward(self, model, optimizer, state, step, gaussians, info, generator=None) -> dict:
+        """Call after ``loss.backward()`` and before ``optimizer.step()``. Returns what changed."""
+        if step <= self.start_stat or step > self.update_until:
+            return {}
+        self.accumulate(state, gaussians, info, model.n_offsets)
+        if step > self.update_from and step % self.update_interval == 0:
+            return self.adjust(model, optimizer, state, generator)
+        return {}
+
+    def growth_threshold(self, model: AnchorModel, state: dict) -> float | torch.Tensor:
+        """Gradient threshold for growing: one number, or one per neural Gaussian [N·k]."""
+        return self.grad_threshold
+
+    # -- growing and pruning --------------------------------------------------------------------
+
+    @torch.no_grad()
+    def grow(self, model, optimizer, state, prefix="", threshold=None, generator=None) -> int:
+        """Grow anchors from the gradient statistics under ``prefix``; returns the number added."""
+        denom = state[prefix + "grad_denom"]
+        grads = torch.nan_to_num(state[prefix + "grad_accum"] / denom, nan=0.0)
+        seen = denom > self.update_interval * self.success_threshold * 0.5
+        if model.voxel_size is None:
+            raise ValueError("anchor growing needs the model's voxel_size (pass it when loading a model)")
+        found = growth_candidates(
+            model.xyz, model.feat, model.gaussian_positions(), grads, seen,
+            self.growth_threshold(model, state) if threshold is None else threshold,
+            model.voxel_size, update_depth=self.update_depth,
+            update_hierachy_factor=self.update_hierachy_factor, update_init_factor=self.update_init_factor,
+            generator=generator,
+        )
+        state[prefix + "grad_accum"][seen] = 0.0
+        state[prefix + "grad_denom"][seen] = 0.0
+        added = found.xyz.shape[0]
+        if added:
+            model.add_anchors(**found.anchor_rows(model.n_offsets), optimizer=optimizer)
+            self._pad(state, added, model.n_offsets)
+        return added
+
+    @torch.no_grad()
+    def prune(self, model, optimizer, state) -> int:
+        """Remove anchors seen often enough whose Gaussians stayed nearly transparent."""
+        checked = state["anchor_denom"] > self.update_interval * self.success_threshold
+        prune = (state["opacity_accum"] < self.min_opacity * state["anchor_denom"]) & checked
+        state["opacity_accum"][checked] = 0.0
+        state["anchor_denom"][checked] = 0.0
+        if prune.any():
+            keep = ~prune
+            k = model.n_offsets
+            for name, value in state.items():
+                state[name] = value.view(-1, k)[keep].reshape(-1) if _per_gaussian(name) else value[keep]
+            model.prune_anchors(prune, optimizer)
+        return int(prune.sum())
+
+    def adjust(self, model, optimizer, state, generator=None) -> dict:
+        grown = self.grow(model, optimizer, state, generator=generator)
+        pruned = self.prune(model, optimizer, state)
+        return {"grown": grown, "pruned": pruned}
+
+    @staticmethod
+    def _pad(state: dict, added: int, k: int) -> None:
+        """Zero statistics for ``added`` new anchors (per-anchor and per-Gaussian entries)."""
+        for name, value in state.items():
+            state[name] = torch.cat([value, value.new_zeros(added * k if _per_gaussian(name) else added)])
+
+
+def _per_gaussian(state_key: str) -> bool:
+    """Gradient statistics have one entry per neural Gaussian (N·k), the others one per anchor."""
+    return state_key.endswith(("grad_accum", "grad_denom"))

@@ -1,0 +1,258 @@
+"""Scaffold-GS training: one class with ``step()``, ``evaluate()`` and checkpoints (Warp examples style).
+
+A step renders one training view through ``securegs_warp.rasterize``, takes the loss
+0.8·L1 + 0.2·(1 − SSIM) + 0.01·volume, backpropagates, lets the densification strategy look at the
+gradients, then steps Adam with Scaffold-GS's learning rates and schedules. A checkpoint holds
+everything a step changes (anchors, heads, Adam, strategy statistics, random state), written
+atomically, so an interrupted run resumes where it stopped.
+"""
+from __future__ import annotations
+
+import dataclasses
+import io
+import time
+
+import numpy as np
+import torch
+
+from ..data import Camera, SceneData
+from ..io.atomic import atomic_write
+from ..model import AnchorModel, ScaffoldHeads, anchor_param_groups, generate_neural_gaussians, visible_anchor_mask
+from ..model.neural_gaussians import camera_center_from_viewmat
+from ..rasterizer import rasterize
+from .losses import photometric_loss, psnr, ssim, volume_loss
+from .schedules import exponential_lr
+from .strategy import ScaffoldStrategy
+
+
+@dataclasses.dataclass
+class TrainConfig:
+    """Hyper-parameters; defaults are Scaffold-GS's (learning rates for its 30k-step runs)."""
+
+    iterations: int = 30_000
+    seed: int = 0
+    feat_dim: int = 32
+    n_offsets: int = 10
+    voxel_size: float = 0.0  # <= 0: from the sparse points' nearest-neighbour distances
+    use_feat_bank: bool = False
+    appearance_dim: int = 0
+    add_opacity_dist: bool = False
+    add_cov_dist: bool = False
+    add_color_dist: bool = False
+    ssim_weight: float = 0.2
+    volume_weight: float = 0.01
+    feature_lr: float = 0.0075
+    scaling_lr: float = 0.007
+    offset_lr_init: float = 0.01
+    offset_lr_final: float = 0.0001
+    mlp_opacity_lr: tuple = (0.002, 0.00002)
+    mlp_cov_lr: tuple = (0.004, 0.004)
+    mlp_color_lr: tuple = (0.008, 0.00005)
+    mlp_featurebank_lr: tuple = (0.01, 0.00001)
+    appearance_lr: tuple = (0.05, 0.0005)
+    densify: bool = True
+    tile_size: int = 16  # rasterizer tile; 8 is faster on the CPU (shorter per-tile lists)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown training options: {', '.join(sorted(unknown))}")
+        d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        return cls(**d)
+
+
+def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(viewmat [4, 4], K [3, 3]) float32 tensors of a camera on ``device``."""
+    return (torch.as_tensor(cam.viewmat, dtype=torch.float32, device=device),
+            torch.as_tensor(cam.K, dtype=torch.float32, device=device))
+
+
+class ScaffoldTrainer:
+    """Trains a Scaffold-GS model on a ``SceneData``.
+
+    Attributes: ``model`` (anchors), ``heads`` (public MLPs), ``optimizer``, ``strategy`` and its
+    ``strategy_state``, ``step_count``.
+    """
+
+    def __init__(self, scene: SceneData, config: TrainConfig, device: str | torch.device = "cpu",
+                 strategy: ScaffoldStrategy | None = None):
+        if not scene.train:
+            raise ValueError(f"scene {scene.name!r} has no training views")
+        self.scene = scene
+        self.config = config
+        self.device = torch.device(device)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.background = torch.tensor(
+            scene.background if scene.background is not None else (0.0, 0.0, 0.0),
+            dtype=torch.float32, device=self.device)
+        torch.manual_seed(config.seed)  # MLP initialisation
+        self.model = AnchorModel.from_points(scene.points, voxel_size=config.voxel_size, feat_dim=config.feat_dim,
+                                             n_offsets=config.n_offsets, device=self.device)
+        self.heads = ScaffoldHeads(
+            config.feat_dim, config.n_offsets, use_feat_bank=config.use_feat_bank,
+            appearance_dim=config.appearance_dim, num_cameras=len(scene.train) if config.appearance_dim else 0,
+            add_opacity_dist=config.add_opacity_dist, add_cov_dist=config.add_cov_dist,
+            add_color_dist=config.add_color_dist,
+        ).to(self.device)
+        self.spatial_scale = float(scene.cameras_extent)
+        self.optimizer = self._make_optimizer()
+        self.strategy = strategy or ScaffoldStrategy.for_iterations(config.iterations)
+        self.strategy_state = self.strategy.initialize_state(self.model)
+        self.step_count = 0
+        self.train_seconds = 0.0  # wall time spent in step(), kept across resumes
+        self._targets = [torch.as_tensor(c.image, device=self.device) for c in scene.train]
+        self._order: list[int] = []
+
+    # -- optimisation ---------------------------------------------------------------------------
+
+    def _mlp_schedules(self) -> dict[str, tuple]:
+        c = self.config
+        return {"mlp_opacity": c.mlp_opacity_lr, "mlp_cov": c.mlp_cov_lr, "mlp_color": c.mlp_color_lr,
+                "mlp_featurebank": c.mlp_featurebank_lr, "appearance": c.appearance_lr}
+
+    def _make_optimizer(self) -> torch.optim.Adam:
+        c = self.config
+        groups = anchor_param_groups(self.model, {
+            "xyz": 0.0,  # Scaffold-GS keeps anchors where voxelisation put them
+            "feat": c.feature_lr, "offsets": c.offset_lr_init * self.spatial_scale,
+            "scaling": c.scaling_lr, "rotation": 0.0, "opacity": 0.0,
+        })
+        for name, module in self.heads.named_mlps().items():
+            groups.append({"params": list(module.parameters()), "lr": self._mlp_schedules()[name][0], "name": name})
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+    def _update_learning_rates(self) -> None:
+        c, step = self.config, self.step_count
+        schedules = self._mlp_schedules()
+        for group in self.optimizer.param_groups:
+            name = group.get("name")
+            if name == "offsets":
+                group["lr"] = exponential_lr(c.offset_lr_init * self.spatial_scale,
+                                             c.offset_lr_final * self.spatial_scale, c.iterations, step)
+            elif name in schedules:
+                group["lr"] = exponential_lr(*schedules[name], c.iterations, step)
+
+    def _next_view(self) -> int:
+        """Training views in a random order, each once per epoch (as 3DGS picks them)."""
+        if not self._order:
+            self._order = torch.randperm(len(self.scene.train), generator=self.generator).tolist()
+        return self._order.pop()
+
+    # -- rendering ------------------------------------------------------------------------------
+
+    def render(self, cam: Camera, camera_index: int | None = None, **raster_options) -> dict:
+        """Decode the anchors for one view and rasterize them.
+
+        Returns dict: ``image`` [H, W, 3], ``alpha`` [H, W, 1], ``info`` (rasterize info),
+        ``gaussians`` (generate_neural_gaussians output).
+        """
+        viewmat, K = camera_tensors(cam, self.device)
+        visible = visible_anchor_mask(self.model, viewmat, K, cam.width, cam.height)
+        # Held-out views have no appearance code of their own: they use the first camera's.
+        appearance = (camera_index or 0) if self.config.appearance_dim else None
+        g = generate_neural_gaussians(self.model, self.heads, camera_center_from_viewmat(viewmat), visible,
+                                      camera_index=appearance)
+        raster_options.setdefault("tile_size", self.config.tile_size)
+        image, alpha, info = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
+                                       viewmat, K, cam.width, cam.height, background=self.background,
+                                       **raster_options)
+        return {"image": image, "alpha": alpha, "info": info, "gaussians": g}
+
+    def step(self) -> dict:
+        """One training iteration. Returns {"loss", "psnr", "anchors", "grown", "pruned"}."""
+        t0 = time.perf_counter()
+        self.step_count += 1
+        self._update_learning_rates()
+        index = self._next_view()
+        out = self.render(self.scene.train[index], camera_index=index)
+        target = self._targets[index]
+        loss = photometric_loss(out["image"], target, self.config.ssim_weight)
+        loss = loss + self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
+        loss.backward()
+        changed = {}
+        if self.config.densify:
+            changed = self.strategy.step_post_backward(self.model, self.optimizer, self.strategy_state,
+                                                       self.step_count, out["gaussians"], out["info"],
+                                                       generator=self.generator)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target),
+                  "anchors": self.model.num_anchors, **changed}
+        self.train_seconds += time.perf_counter() - t0
+        return result
+
+    @torch.no_grad()
+    def evaluate(self, cameras: list[Camera] | None = None, timing_repeats: int = 3) -> dict:
+        """PSNR, SSIM on held-out views (the test split by default), and rendering FPS."""
+        cameras = self.scene.test if cameras is None else cameras
+        if not cameras:
+            raise ValueError("no held-out views to evaluate on")
+        psnrs, ssims = [], []
+        for cam in cameras:
+            image = self.render(cam)["image"].clamp(0, 1)
+            target = torch.as_tensor(cam.image, device=self.device)
+            psnrs.append(psnr(image, target))
+            ssims.append(float(ssim(image, target)))
+        return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)),
+                "fps": render_fps(self.render, cameras, self.device, timing_repeats),
+                "anchors": self.model.num_anchors, "views": len(cameras)}
+
+    # -- checkpoints ----------------------------------------------------------------------------
+
+    def checkpoint_state(self) -> dict:
+        """Everything a step changes, as tensors and plain numbers (loadable with weights_only)."""
+        return {
+            "step": self.step_count,
+            "train_seconds": self.train_seconds,
+            "config": self.config.to_dict(),
+            "voxel_size": float(self.model.voxel_size),
+            "model": self.model.state_dict(),
+            "heads": self.heads.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "strategy": self.strategy_state,
+            "generator": self.generator.get_state(),
+            "order": list(self._order),
+        }
+
+    def save_checkpoint(self, path) -> None:
+        buffer = io.BytesIO()
+        torch.save(self.checkpoint_state(), buffer)
+        atomic_write(path, lambda f: f.write(buffer.getvalue()))
+
+    def load_checkpoint(self, path) -> None:
+        """Restore a checkpoint written by ``save_checkpoint`` (tensors and numbers only)."""
+        state = torch.load(path, map_location=self.device, weights_only=True)
+        if state["config"] != self.config.to_dict():
+            raise ValueError(f"{path}: checkpoint was written with other training options; resume with the "
+                             "run's own config")
+        model_state = state["model"]
+        self.model = AnchorModel(**{name: model_state[name] for name in ("xyz", "feat", "offsets", "scaling",
+                                                                         "rotation", "opacity")},
+                                 voxel_size=state["voxel_size"])
+        self.heads.load_state_dict(state["heads"])
+        self.optimizer = self._make_optimizer()
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.strategy_state = state["strategy"]
+        self.generator.set_state(state["generator"])
+        self._order = list(state["order"])
+        self.step_count = int(state["step"])
+        self.train_seconds = float(state["train_seconds"])
+
+
+def render_fps(render, cameras, device, repeats: int = 3) -> float:
+    """Frames per second of ``render(cam)`` over the cameras (after one warm-up pass)."""
+    render(cameras[0])
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        for cam in cameras:
+            render(cam)
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+    return repeats * len(cameras) / (time.perf_counter() - t0)

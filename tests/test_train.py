@@ -1,0 +1,143 @@
+"""Training: losses, the densification strategy's invariants, checkpoints, resume and the CLI."""
+import json
+
+import pytest
+import torch
+
+from securegs_warp.cli import main
+from securegs_warp.data import make_synthetic_scene
+from securegs_warp.io import load_scaffold
+from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, psnr, ssim
+from securegs_warp.train.trainer import camera_tensors
+
+TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene():
+    return make_synthetic_scene(width=40, height=30, n_train=6, n_test=2, n_points=600)
+
+
+def test_ssim_and_psnr():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(20, 24, 3, generator=g)
+    assert abs(float(ssim(a, a)) - 1.0) < 1e-6
+    noise = torch.randn(20, 24, 3, generator=g)
+    mild, strong = float(ssim((a + 0.1 * noise).clamp(0, 1), a)), float(ssim((a + 0.3 * noise).clamp(0, 1), a))
+    assert 0.0 < strong < mild < 0.99
+    assert abs(psnr(torch.full((4, 4, 3), 0.5), torch.full((4, 4, 3), 0.6)) - 20.0) < 1e-4
+    with pytest.raises(ValueError, match="ssim"):
+        ssim(a, a[:10])
+
+
+def test_schedule_scales_with_run_length():
+    s = ScaffoldStrategy.for_iterations(3000)
+    assert (s.start_stat, s.update_from, s.update_until) == (50, 150, 1500)
+    assert s.update_interval == 20  # floor: growing needs enough views per interval
+
+
+def _train(scene, iterations, steps=None, **config):
+    trainer = ScaffoldTrainer(scene, TrainConfig(iterations=iterations, tile_size=8, **config))
+    for _ in range(iterations if steps is None else steps):
+        trainer.step()
+    return trainer
+
+
+def test_strategy_keeps_statistics_aligned_with_anchors(tiny_scene):
+    strategy = ScaffoldStrategy(start_stat=0, update_from=0, update_interval=5, update_until=100,
+                                grad_threshold=1e-5, min_opacity=0.5)
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=40, tile_size=8), strategy=strategy)
+    grown = pruned = 0
+    for _ in range(40):
+        changed = trainer.step()
+        grown += changed.get("grown", 0)
+        pruned += changed.get("pruned", 0)
+        n, k = trainer.model.num_anchors, trainer.model.n_offsets
+        state = trainer.strategy_state
+        assert state["grad_accum"].shape == (n * k,) and state["anchor_denom"].shape == (n,)
+        for group in trainer.optimizer.param_groups:
+            for p in group["params"]:
+                moments = trainer.optimizer.state.get(p, {})
+                if "exp_avg" in moments:
+                    assert moments["exp_avg"].shape == p.shape, group.get("name")
+    assert grown > 0 and pruned > 0  # a low threshold grows, a high min opacity prunes
+    xyz = trainer.model.xyz
+    assert torch.unique(xyz, dim=0).shape[0] == xyz.shape[0]  # growing never duplicates an anchor
+
+
+def test_training_reduces_loss(tiny_scene):
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=60, tile_size=8))
+    before = trainer.evaluate(timing_repeats=1)["psnr"]
+    for _ in range(60):
+        trainer.step()
+    after = trainer.evaluate(timing_repeats=1)["psnr"]
+    assert after > before + 3.0, (before, after)
+
+
+def test_resume_after_interruption_matches_uninterrupted_run(tiny_scene, tmp_path):
+    straight = _train(tiny_scene, 24)
+    first = _train(tiny_scene, 24, steps=13)
+    first.save_checkpoint(tmp_path / "ckpt.pt")
+    resumed = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=24, tile_size=8))
+    resumed.load_checkpoint(tmp_path / "ckpt.pt")
+    assert resumed.step_count == 13
+    for _ in range(11):
+        resumed.step()
+    for name in ("xyz", "feat", "offsets", "scaling"):
+        assert torch.allclose(getattr(resumed.model, name), getattr(straight.model, name), atol=1e-6), name
+    cam = tiny_scene.test[0]
+    with torch.no_grad():
+        assert torch.allclose(resumed.render(cam)["image"], straight.render(cam)["image"], atol=1e-5)
+
+
+def test_checkpoint_with_other_options_is_refused(tiny_scene, tmp_path):
+    _train(tiny_scene, 4).save_checkpoint(tmp_path / "ckpt.pt")
+    other = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=5, tile_size=8))
+    with pytest.raises(ValueError, match="other training options"):
+        other.load_checkpoint(tmp_path / "ckpt.pt")
+
+
+def test_cli_train_eval_render_export_and_resume(tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    args = ["train", "--out", str(run), "--iterations", "30", "--quiet", "--checkpoint-every", "10", *TINY]
+
+    # Interrupt at step 17: a checkpoint is written and the exit code says so.
+    real_step = ScaffoldTrainer.step
+
+    def interrupted(self):
+        if self.step_count == 17:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(ScaffoldTrainer, "step", interrupted)
+    assert main(args) == 130
+    monkeypatch.setattr(ScaffoldTrainer, "step", real_step)
+    assert torch.load(run / "checkpoint.pt", weights_only=True)["step"] == 17
+    assert main(args) == 2  # the folder holds a run: neither --resume nor --force given
+    assert main(args + ["--resume"]) == 0
+
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["psnr"] > 12 and 0 < metrics["ssim"] <= 1 and metrics["fps"] > 0 and metrics["size_mb"] > 0
+    assert metrics["lpips"] is None or metrics["lpips"] >= 0
+    steps = [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert steps[-1] == 30
+    assert sorted(p.name for p in (run / "renders").iterdir()) == ["test_000.png", "test_001.png"]
+
+    model, heads = load_scaffold(run / "model")
+    assert model.num_anchors == metrics["anchors"]
+    assert main(["eval", str(run)]) == 0
+    assert json.loads((run / "eval.json").read_text())["psnr"] == pytest.approx(metrics["psnr"], abs=1e-4)
+    assert main(["render", str(run), "--split", "train", "--out", str(tmp_path / "r")]) == 0
+    assert len(list((tmp_path / "r" / "renders").iterdir())) == 6
+    assert main(["export", str(run), "--out", str(tmp_path / "x.ply")]) == 0
+    assert (tmp_path / "x.ply").stat().st_size > 1000
+
+
+def test_cli_reports_bad_scene(tmp_path, capsys):
+    assert main(["train", "--scene", str(tmp_path / "missing"), "--out", str(tmp_path / "r"), "--quiet"]) == 2
+    assert "missing" in capsys.readouterr().err
+
+
+def test_render_matches_camera(tiny_scene):
+    viewmat, K = camera_tensors(tiny_scene.train[0], "cpu")
+    assert viewmat.shape == (4, 4) and K.shape == (3, 3)
