@@ -1,4 +1,5 @@
-"""``securegs`` command line: train, render, eval, export (Scaffold-GS engine)."""
+"""``securegs`` command line: train, render, eval, export (Scaffold-GS engine); hide, reveal, demo
+(SecureGS, in cli_secure.py)."""
 from __future__ import annotations
 
 import argparse
@@ -54,28 +55,40 @@ def cmd_train(args) -> int:
                          use_feat_bank=args.feat_bank, appearance_dim=32 if args.appearance else 0)
     spec = scene_spec(args)
     record = {"scene": dataclasses.asdict(spec), "train": config.to_dict()}
-    resume = args.resume and run.checkpoint.is_file()
-    if resume:
-        saved = run.read_config()
-        if saved["scene"] != record["scene"] or TrainConfig.from_dict(saved["train"]) != config:
-            print(f"error: {run.config} was written with other options; resume with the same command line",
-                  file=sys.stderr)
-            return 2
-    elif run.config.is_file() and not args.force:
-        print(f"error: {run.path} already holds a run; add --resume to continue it or --force to start over",
-              file=sys.stderr)
-        return 2
-    else:
-        for stale in (run.log, run.checkpoint, run.metrics):
-            stale.unlink(missing_ok=True)
+    resume = prepare_run(run, record, args)
+    trainer = ScaffoldTrainer(spec.load(), config, device=device)
+    return start_training(trainer, run, record, resume, args,
+                          finish=lambda: _finish_scaffold(trainer, run, save_scaffold))
 
-    scene = spec.load()
-    trainer = ScaffoldTrainer(scene, config, device=device)
+
+class RunConflict(ValueError):
+    """The output folder holds another run (or one made with other options)."""
+
+
+def prepare_run(run: RunFolder, record: dict, args) -> bool:
+    """Decide whether to resume (True) or start afresh (False); refuse to mix runs."""
+    from .train import TrainConfig
+
+    if args.resume and run.checkpoint.is_file():
+        saved = run.read_config()
+        same = ({k: v for k, v in saved.items() if k != "train"} == {k: v for k, v in record.items() if k != "train"}
+                and TrainConfig.from_dict(saved["train"]).to_dict() == record["train"])
+        if not same:
+            raise RunConflict(f"{run.config} was written with other options; resume with the same command line")
+        return True
+    if run.config.is_file() and not args.force:
+        raise RunConflict(f"{run.path} already holds a run; add --resume to continue it or --force to start over")
+    for stale in (run.log, run.checkpoint, run.metrics):
+        stale.unlink(missing_ok=True)
+    return False
+
+
+def start_training(trainer, run: RunFolder, record: dict, resume: bool, args, finish) -> int:
     if resume:
         trainer.load_checkpoint(run.checkpoint)
         print(f"resuming {run.path} at step {trainer.step_count}")
     run.write_json(run.config, record)
-    return train_loop(trainer, run, args, finish=lambda: _finish_scaffold(trainer, run, save_scaffold))
+    return train_loop(trainer, run, args, finish)
 
 
 def train_loop(trainer, run: RunFolder, args, finish) -> int:
@@ -110,13 +123,13 @@ def train_loop(trainer, run: RunFolder, args, finish) -> int:
 def _finish_scaffold(trainer, run: RunFolder, save_scaffold) -> None:
     save_scaffold(run.model, trainer.model, trainer.heads)
     metrics = evaluate_trainer(trainer, run)
-    metrics["train_seconds"] = round(trainer.train_seconds, 2)
+    metrics.update(size_mb=round(folder_size_mb(run.model), 3), train_seconds=round(trainer.train_seconds, 2))
     run.write_json(run.metrics, metrics)
     _print_metrics(metrics)
 
 
 def evaluate_trainer(trainer, run: RunFolder) -> dict:
-    """Held-out metrics, FPS and size of the saved model; writes the held-out renders as PNGs."""
+    """Held-out metrics and FPS of the public render; writes the held-out renders as PNGs."""
     from .evaluation import image_metrics
     from .train import render_fps
 
@@ -129,13 +142,13 @@ def evaluate_trainer(trainer, run: RunFolder) -> dict:
     metrics = image_metrics(zip(renders, targets), trainer.device)
     with torch.no_grad():
         metrics["fps"] = render_fps(trainer.render, cams, trainer.device)
-    metrics.update(views=len(cams), anchors=trainer.model.num_anchors, size_mb=round(folder_size_mb(run.model), 3),
-                   device=str(trainer.device))
+    metrics.update(views=len(cams), anchors=trainer.model.num_anchors, device=str(trainer.device))
     return metrics
 
 
 def _print_metrics(metrics: dict) -> None:
-    keys = ("psnr", "ssim", "lpips", "fps", "size_mb", "anchors", "train_seconds")
+    keys = ("psnr", "ssim", "lpips", "fps", "size_mb", "psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden",
+            "bit_accuracy", "fps_public", "fps_hidden", "size_mb_public", "anchors", "train_seconds")
     print("  ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics.get(k), float) else f"{k}={metrics.get(k)}"
                     for k in keys if k in metrics))
     if metrics.get("lpips_note"):
@@ -175,6 +188,7 @@ def cmd_render(args) -> int:
 def cmd_eval(args) -> int:
     trainer, run = load_run(args.run, _device(args.device))
     metrics = evaluate_trainer(trainer, run)
+    metrics["size_mb"] = round(folder_size_mb(run.model), 3)
     run.write_json(run.path / "eval.json", metrics)
     _print_metrics(metrics)
     return 0
@@ -199,24 +213,31 @@ def cmd_export(args) -> int:
 # ---------------------------------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="securegs", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    p = sub.add_parser("train", help="train a Scaffold-GS model")
-    add_scene_arguments(p)
-    p.add_argument("--out", default="runs/scaffold", help="run folder")
-    p.add_argument("--iterations", type=int, default=800)
+def add_training_arguments(p: argparse.ArgumentParser, default_out: str, default_iterations: int) -> None:
+    p.add_argument("--out", default=default_out, help="run folder")
+    p.add_argument("--iterations", type=int, default=default_iterations)
     p.add_argument("--tile-size", type=int, choices=(8, 16, 32), help="default: 8 on the CPU, 16 on CUDA")
-    p.add_argument("--feat-bank", action="store_true", help="Scaffold-GS feature bank")
-    p.add_argument("--appearance", action="store_true", help="per-camera appearance embedding")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     p.add_argument("--force", action="store_true", help="overwrite an existing run in --out")
     p.add_argument("--log-every", type=int, default=50)
     p.add_argument("--checkpoint-every", type=int, default=200)
     p.add_argument("--device")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .cli_secure import add_secure_parsers
+
+    parser = argparse.ArgumentParser(prog="securegs", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("train", help="train a Scaffold-GS model")
+    add_scene_arguments(p)
+    add_training_arguments(p, default_out="runs/scaffold", default_iterations=800)
+    p.add_argument("--feat-bank", action="store_true", help="Scaffold-GS feature bank")
+    p.add_argument("--appearance", action="store_true", help="per-camera appearance embedding")
     p.set_defaults(func=cmd_train)
+    add_secure_parsers(sub, add_scene_arguments, add_training_arguments)
 
     for name, func, helptext in (("render", cmd_render, "render a trained run's views to PNG"),
                                  ("eval", cmd_eval, "held-out metrics of a trained run"),

@@ -8,7 +8,7 @@ from securegs_warp.cli import main
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import load_scaffold
 from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, psnr, ssim
-from securegs_warp.train.trainer import camera_tensors
+from securegs_warp.render import camera_tensors
 
 TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
 

@@ -56,19 +56,23 @@ class ScaffoldStrategy:
             "anchor_denom": torch.zeros(n, device=dev),  # views in which the anchor was visible
         }
 
+    # Per-anchor statistics (one row per anchor); subclasses add theirs. Gradient statistics are
+    # per neural Gaussian (N·k rows); any other state entry is not indexed by anchor.
+    anchor_state_keys = ("opacity_accum", "anchor_denom")
+
     @staticmethod
     @torch.no_grad()
-    def accumulate(state: dict, gaussians: dict, info: dict, k: int, prefix: str = "") -> None:
+    def accumulate(state: dict, gaussians: dict, info: dict, k: int, prefix: str = "", opacity: bool = True) -> None:
         """Add one view's statistics (Scaffold-GS ``training_statis``).
 
         gaussians: the output of ``generate_neural_gaussians`` for the view; info: the matching
         ``rasterize`` info after backward. ``prefix`` selects a second set of gradient statistics
-        (SecureGS keeps one per branch).
+        (SecureGS keeps one per branch); ``opacity`` also counts the view in the opacity statistics.
         """
         visible = gaussians["visible_mask"]
-        opacity = gaussians["neural_opacity"].detach().clamp_min(0.0).view(-1, k)
-        if not prefix:
-            state["opacity_accum"][visible] += opacity.sum(dim=1)
+        if opacity:
+            neural = gaussians["neural_opacity"].detach().clamp_min(0.0).view(-1, k)
+            state["opacity_accum"][visible] += neural.sum(dim=1)
             state["anchor_denom"][visible] += 1
         rows = torch.zeros_like(state[prefix + "grad_denom"], dtype=torch.bool)
         rows[visible.repeat_interleave(k)] = gaussians["mask"]
@@ -82,8 +86,12 @@ class ScaffoldStrategy:
 
     # -- hooks ----------------------------------------------------------------------------------
 
-    def step_post_backward(self, model, optimizer, state, step, gaussians, info, generator=None) -> dict:
-        """Call after ``loss.backward()`` and before ``optimizer.step()``. Returns what changed."""
+    def step_post_backward(self, model, optimizer, state, step, gaussians, info, generator=None, hidden=None) -> dict:
+        """Call after ``loss.backward()`` and before ``optimizer.step()``. Returns what changed.
+
+        ``hidden`` (the hidden branch's gaussians and info) is for SecureGS strategies; Scaffold-GS
+        densifies from the public render alone.
+        """
         if step <= self.start_stat or step > self.update_until:
             return {}
         self.accumulate(state, gaussians, info, model.n_offsets)
@@ -131,7 +139,10 @@ class ScaffoldStrategy:
             keep = ~prune
             k = model.n_offsets
             for name, value in state.items():
-                state[name] = value.view(-1, k)[keep].reshape(-1) if _per_gaussian(name) else value[keep]
+                if _per_gaussian(name):
+                    state[name] = value.view(-1, k)[keep].reshape(-1)
+                elif name in self.anchor_state_keys:
+                    state[name] = value[keep]
             model.prune_anchors(prune, optimizer)
         return int(prune.sum())
 
@@ -140,11 +151,11 @@ class ScaffoldStrategy:
         pruned = self.prune(model, optimizer, state)
         return {"grown": grown, "pruned": pruned}
 
-    @staticmethod
-    def _pad(state: dict, added: int, k: int) -> None:
+    def _pad(self, state: dict, added: int, k: int) -> None:
         """Zero statistics for ``added`` new anchors (per-anchor and per-Gaussian entries)."""
         for name, value in state.items():
-            state[name] = torch.cat([value, value.new_zeros(added * k if _per_gaussian(name) else added)])
+            if _per_gaussian(name) or name in self.anchor_state_keys:
+                state[name] = torch.cat([value, value.new_zeros(added * k if _per_gaussian(name) else added)])
 
 
 def _per_gaussian(state_key: str) -> bool:

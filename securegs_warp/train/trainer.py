@@ -17,9 +17,8 @@ import torch
 
 from ..data import Camera, SceneData
 from ..io.atomic import atomic_write
-from ..model import AnchorModel, ScaffoldHeads, anchor_param_groups, generate_neural_gaussians, visible_anchor_mask
-from ..model.neural_gaussians import camera_center_from_viewmat
-from ..rasterizer import rasterize
+from ..model import AnchorModel, ScaffoldHeads, anchor_param_groups
+from ..render import render_view
 from .losses import photometric_loss, psnr, ssim, volume_loss
 from .schedules import exponential_lr
 from .strategy import ScaffoldStrategy
@@ -50,6 +49,8 @@ class TrainConfig:
     mlp_color_lr: tuple = (0.008, 0.00005)
     mlp_featurebank_lr: tuple = (0.01, 0.00001)
     appearance_lr: tuple = (0.05, 0.0005)
+    mlp_offset_lr: tuple = (0.004, 0.0004)  # SecureGS's private offset predictor F_o† (no paper value)
+    mlp_bits_lr: tuple = (0.01, 0.001)  # SecureGS's bit head F_b†: 256 bits exact within ~20 steps
     densify: bool = True
     tile_size: int = 16  # rasterizer tile; 8 is faster on the CPU (shorter per-tile lists)
 
@@ -64,12 +65,6 @@ class TrainConfig:
             raise ValueError(f"unknown training options: {', '.join(sorted(unknown))}")
         d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
         return cls(**d)
-
-
-def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """(viewmat [4, 4], K [3, 3]) float32 tensors of a camera on ``device``."""
-    return (torch.as_tensor(cam.viewmat, dtype=torch.float32, device=device),
-            torch.as_tensor(cam.K, dtype=torch.float32, device=device))
 
 
 class ScaffoldTrainer:
@@ -110,10 +105,17 @@ class ScaffoldTrainer:
 
     # -- optimisation ---------------------------------------------------------------------------
 
-    def _mlp_schedules(self) -> dict[str, tuple]:
+    def _mlp_schedule(self, group_name: str) -> tuple:
+        """(initial, final) learning rate of an MLP group; private copies share the public schedule."""
         c = self.config
-        return {"mlp_opacity": c.mlp_opacity_lr, "mlp_cov": c.mlp_cov_lr, "mlp_color": c.mlp_color_lr,
-                "mlp_featurebank": c.mlp_featurebank_lr, "appearance": c.appearance_lr}
+        schedules = {"mlp_opacity": c.mlp_opacity_lr, "mlp_cov": c.mlp_cov_lr, "mlp_color": c.mlp_color_lr,
+                     "mlp_featurebank": c.mlp_featurebank_lr, "appearance": c.appearance_lr,
+                     "mlp_offset": c.mlp_offset_lr, "mlp_bits": c.mlp_bits_lr}
+        return schedules[group_name.removeprefix("private_")]
+
+    def head_groups(self) -> dict:
+        """Name → module of every trained MLP (the SecureGS trainer adds its private ones)."""
+        return self.heads.named_mlps()
 
     def _make_optimizer(self) -> torch.optim.Adam:
         c = self.config
@@ -122,20 +124,19 @@ class ScaffoldTrainer:
             "feat": c.feature_lr, "offsets": c.offset_lr_init * self.spatial_scale,
             "scaling": c.scaling_lr, "rotation": 0.0, "opacity": 0.0,
         })
-        for name, module in self.heads.named_mlps().items():
-            groups.append({"params": list(module.parameters()), "lr": self._mlp_schedules()[name][0], "name": name})
+        for name, module in self.head_groups().items():
+            groups.append({"params": list(module.parameters()), "lr": self._mlp_schedule(name)[0], "name": name})
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
     def _update_learning_rates(self) -> None:
         c, step = self.config, self.step_count
-        schedules = self._mlp_schedules()
         for group in self.optimizer.param_groups:
             name = group.get("name")
             if name == "offsets":
                 group["lr"] = exponential_lr(c.offset_lr_init * self.spatial_scale,
                                              c.offset_lr_final * self.spatial_scale, c.iterations, step)
-            elif name in schedules:
-                group["lr"] = exponential_lr(*schedules[name], c.iterations, step)
+            elif name in self.head_groups():
+                group["lr"] = exponential_lr(*self._mlp_schedule(name), c.iterations, step)
 
     def _next_view(self) -> int:
         """Training views in a random order, each once per epoch (as 3DGS picks them)."""
@@ -146,45 +147,47 @@ class ScaffoldTrainer:
     # -- rendering ------------------------------------------------------------------------------
 
     def render(self, cam: Camera, camera_index: int | None = None, **raster_options) -> dict:
-        """Decode the anchors for one view and rasterize them.
+        """The public render of one view; see ``render_branch``."""
+        return self.render_branch(cam, self.heads, self.background, camera_index, **raster_options)
 
-        Returns dict: ``image`` [H, W, 3], ``alpha`` [H, W, 1], ``info`` (rasterize info),
-        ``gaussians`` (generate_neural_gaussians output).
-        """
-        viewmat, K = camera_tensors(cam, self.device)
-        visible = visible_anchor_mask(self.model, viewmat, K, cam.width, cam.height)
-        # Held-out views have no appearance code of their own: they use the first camera's.
-        appearance = (camera_index or 0) if self.config.appearance_dim else None
-        g = generate_neural_gaussians(self.model, self.heads, camera_center_from_viewmat(viewmat), visible,
-                                      camera_index=appearance)
+    def render_branch(self, cam: Camera, heads, background, camera_index=None, offset_source=None,
+                      **raster_options) -> dict:
+        """``render_view`` with this run's tile size."""
         raster_options.setdefault("tile_size", self.config.tile_size)
-        image, alpha, info = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
-                                       viewmat, K, cam.width, cam.height, background=self.background,
-                                       **raster_options)
-        return {"image": image, "alpha": alpha, "info": info, "gaussians": g}
+        return render_view(self.model, heads, cam, background, camera_index=camera_index,
+                           offset_source=offset_source, **raster_options)
+
+    def image_loss(self, out: dict, target: torch.Tensor) -> torch.Tensor:
+        """(1 − α)·L1 + α·(1 − SSIM) + β·volume for one render (the paper's ℓ_ori and ℓ_hid)."""
+        loss = photometric_loss(out["image"], target, self.config.ssim_weight)
+        return loss + self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
 
     def step(self) -> dict:
-        """One training iteration. Returns {"loss", "psnr", "anchors", "grown", "pruned"}."""
+        """One training iteration. Returns {"loss", "psnr", "anchors", "grown", "pruned", ...}."""
         t0 = time.perf_counter()
         self.step_count += 1
         self._update_learning_rates()
         index = self._next_view()
         out = self.render(self.scene.train[index], camera_index=index)
         target = self._targets[index]
-        loss = photometric_loss(out["image"], target, self.config.ssim_weight)
-        loss = loss + self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
+        loss, hidden, extra = self.extra_losses(index, self.image_loss(out, target))
         loss.backward()
         changed = {}
         if self.config.densify:
             changed = self.strategy.step_post_backward(self.model, self.optimizer, self.strategy_state,
                                                        self.step_count, out["gaussians"], out["info"],
-                                                       generator=self.generator)
+                                                       generator=self.generator, hidden=hidden)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target),
-                  "anchors": self.model.num_anchors, **changed}
+                  "anchors": self.model.num_anchors, **extra, **changed}
         self.train_seconds += time.perf_counter() - t0
         return result
+
+    def extra_losses(self, index: int, loss: torch.Tensor):
+        """Hook for the hidden branch: (total loss, (gaussians, info) of a hidden render or None,
+        numbers to report). Scaffold-GS has only the public loss."""
+        return loss, None, {}
 
     @torch.no_grad()
     def evaluate(self, cameras: list[Camera] | None = None, timing_repeats: int = 3) -> dict:
@@ -227,6 +230,9 @@ class ScaffoldTrainer:
     def load_checkpoint(self, path) -> None:
         """Restore a checkpoint written by ``save_checkpoint`` (tensors and numbers only)."""
         state = torch.load(path, map_location=self.device, weights_only=True)
+        self.restore(state, path)
+
+    def restore(self, state: dict, path) -> None:
         if state["config"] != self.config.to_dict():
             raise ValueError(f"{path}: checkpoint was written with other training options; resume with the "
                              "run's own config")

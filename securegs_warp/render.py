@@ -1,0 +1,36 @@
+"""Render a view of an anchor model with a set of heads: decode the visible anchors, rasterize."""
+from __future__ import annotations
+
+import torch
+
+from .data import Camera
+from .model import generate_neural_gaussians, visible_anchor_mask
+from .model.neural_gaussians import camera_center_from_viewmat
+from .rasterizer import rasterize
+
+
+def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(viewmat [4, 4], K [3, 3]) float32 tensors of a camera on ``device``."""
+    return (torch.as_tensor(cam.viewmat, dtype=torch.float32, device=device),
+            torch.as_tensor(cam.K, dtype=torch.float32, device=device))
+
+
+def render_view(model, heads, cam: Camera, background: torch.Tensor, *, camera_index: int | None = None,
+                offset_source=None, **raster_options) -> dict:
+    """Decode ``model``'s anchors visible from ``cam`` with ``heads`` and rasterize them.
+
+    offset_source: where the Gaussians sit (default: the stored public offsets; SecureGS's hidden
+    branch passes its private offset predictor). Returns dict: ``image`` [H, W, 3], ``alpha``
+    [H, W, 1], ``info`` (rasterize info), ``gaussians`` (generate_neural_gaussians output).
+    """
+    device = model.xyz.device
+    viewmat, K = camera_tensors(cam, device)
+    visible = visible_anchor_mask(model, viewmat, K, cam.width, cam.height)
+    # Views without an appearance code of their own (held-out ones) use the first camera's.
+    appearance = (camera_index or 0) if heads.appearance_dim else None
+    extra = {"offset_source": offset_source} if offset_source is not None else {}
+    g = generate_neural_gaussians(model, heads, camera_center_from_viewmat(viewmat), visible,
+                                  camera_index=appearance, **extra)
+    image, alpha, info = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], viewmat, K,
+                                   cam.width, cam.height, background=background, **raster_options)
+    return {"image": image, "alpha": alpha, "info": info, "gaussians": g}

@@ -1,0 +1,8 @@
+"""SecureGS: private decoders, payloads, region-aware density optimization, containers and keys."""
+from .heads import PrivateHeads
+from .payload import Payload, PayloadSpec, build_payload
+from .strategy import MODES, RegionAwareStrategy
+from .trainer import SecureTrainer
+
+__all__ = ["MODES", "Payload", "PayloadSpec", "PrivateHeads", "RegionAwareStrategy", "SecureTrainer",
+           "build_payload"]

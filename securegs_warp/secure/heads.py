@@ -1,0 +1,71 @@
+"""The private decoders of SecureGS (the key): F_o†, F_α†, F_cov†, F_c† and the bit head F_b†.
+
+They read the same public anchors as the public heads; nothing of them is in the public release.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..model import ScaffoldHeads, make_mlp
+from ..model.neural_gaussians import AnchorViewInputs
+
+
+class PrivateHeads(nn.Module):
+    """Private MLPs. ``decoder`` has exactly the public heads' shapes (F_α†, F_cov†, F_c†).
+
+    offset_mlp (F_o†): Linear(d+3, d), ReLU, Linear(d, 3k) — the hidden Gaussians' offsets from the
+        blended anchor feature and view direction, so that no hidden offset is stored in the file
+        (the paper's hybrid decoupled Gaussian encryption, HDGER). ``None`` in the "w/o HDGER"
+        ablation, where explicit offsets are trained instead (``explicit_offsets`` [N, k, 3], kept
+        with the key, one row per anchor).
+    bit_mlp (F_b†): Linear(d, d), ReLU, Linear(d, L) — per-anchor bit logits; the message is the
+        average over anchors (each anchor votes).
+    scale_offsets: hidden offsets are in units of the anchor's offset scale exp(l_v[:3]), as the
+        public offsets are. The paper writes x_v + F_o†(...) without l_v; scaling keeps the MLP's
+        output range independent of the scene's size and of the anchor's voxel level, which is what
+        lets one small MLP place Gaussians for anchors grown at several levels. Switchable.
+    """
+
+    def __init__(self, public: ScaffoldHeads, *, bits: int = 0, offsets: bool = True, scale_offsets: bool = True,
+                 hidden: bool = True):
+        super().__init__()
+        d, k = public.feat_dim, public.n_offsets
+        self.feat_dim, self.n_offsets, self.scale_offsets = d, k, scale_offsets
+        self.decoder = ScaffoldHeads(d, k, use_feat_bank=public.use_feat_bank,
+                                     add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
+                                     add_color_dist=public.add_color_dist) if hidden else None
+        self.offset_mlp = make_mlp(d + 3, d, 3 * k) if hidden and offsets else None
+        self.bit_mlp = make_mlp(d, d, bits) if bits > 0 else None
+
+    @property
+    def n_bits(self) -> int:
+        return 0 if self.bit_mlp is None else self.bit_mlp[-1].out_features
+
+    def hidden_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
+        """World-space displacements [Nv, k, 3] of the hidden Gaussians of the visible anchors."""
+        raw = self.offset_mlp(torch.cat([inputs.feat, inputs.ob_view], dim=1)).view(-1, self.n_offsets, 3)
+        return raw * inputs.scaling[:, None, :3] if self.scale_offsets else raw
+
+    def bit_logits(self, feat: torch.Tensor) -> torch.Tensor:
+        """Per-anchor bit logits [N, L] from anchor features [N, d]."""
+        return self.bit_mlp(feat)
+
+    @torch.no_grad()
+    def decode_bits(self, feat: torch.Tensor) -> torch.Tensor:
+        """The message [L] (0/1 ints): each anchor votes with its sigmoid, the mean decides."""
+        return (torch.sigmoid(self.bit_logits(feat)).mean(dim=0) > 0.5).to(torch.int64)
+
+    def named_mlps(self) -> dict[str, nn.Module]:
+        """Trainable parts by learning-rate schedule (the decoder's names are the public ones)."""
+        parts = dict(self.decoder.named_mlps()) if self.decoder is not None else {}
+        if self.offset_mlp is not None:
+            parts["mlp_offset"] = self.offset_mlp
+        if self.bit_mlp is not None:
+            parts["mlp_bits"] = self.bit_mlp
+        return parts
+
+    def describe(self) -> dict:
+        """The constructor arguments, for the key's metadata."""
+        return {"bits": self.n_bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
+                "hidden": self.decoder is not None}

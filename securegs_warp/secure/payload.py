@@ -1,0 +1,123 @@
+"""What is hidden: a 3D object (object or scene level), a whole scene, one image at one view, bits.
+
+A payload spec is a string such as ``object``, ``scene``, ``image``, ``image:logo.png@3``,
+``bits:48`` or a combination ``object+bits:48``. Objects and scenes come with the scene data (a
+hidden view per camera); an image is a file, or ``builtin`` (a procedural emblem); bits are drawn
+from the seed or given literally (``bits:0110...``).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from ..data import SceneData
+from ..data.cameras import read_image, resize_image
+
+# λ of ℓ_total = ℓ_ori + λ·ℓ_hid: the paper's 10 for objects and 0.1 for one image; a whole hidden
+# scene is as large as the cover, so it gets equal weight.
+HIDDEN_WEIGHT = {"object": 10.0, "scene": 1.0, "image": 0.1}
+BIT_WEIGHT = 1.0
+
+
+@dataclasses.dataclass
+class PayloadSpec:
+    kind: str | None = None  # "object" | "scene" | "image" | None (bits only)
+    image: str | None = None  # image payload: a file, or "builtin"
+    image_view: int = 0  # image payload: the training view it is hidden at
+    bits: int = 0
+    bit_string: str | None = None
+    seed: int = 0
+
+    @classmethod
+    def parse(cls, text: str, seed: int = 0) -> "PayloadSpec":
+        spec = cls(seed=seed)
+        for part in filter(None, text.split("+")):
+            name, _, arg = part.partition(":")
+            if name in ("object", "scene"):
+                spec.kind = name
+            elif name == "image":
+                path, _, view = (arg or "builtin").partition("@")
+                spec.kind, spec.image, spec.image_view = "image", path, int(view or 0)
+            elif name == "bits":
+                if arg and set(arg) <= {"0", "1"} and len(arg) > 3:
+                    spec.bit_string, spec.bits = arg, len(arg)
+                else:
+                    spec.bits = int(arg or 48)
+                if not 1 <= spec.bits <= 256:
+                    raise ValueError(f"bits: length must be in [1, 256], got {spec.bits}")
+            else:
+                raise ValueError(f"unknown payload {part!r}: use object, scene, image[:FILE[@VIEW]], bits[:L]")
+        if spec.kind is None and spec.bits == 0:
+            raise ValueError(f"empty payload {text!r}")
+        return spec
+
+    def describe(self) -> str:
+        parts = [self.kind if self.kind != "image" else f"image:{self.image}@{self.image_view}"] if self.kind else []
+        return "+".join(parts + ([f"bits:{self.bits}"] if self.bits else []))
+
+
+@dataclasses.dataclass
+class Payload:
+    """Training targets of the hidden branch, on the training device.
+
+    views: hidden image [H, W, 3] per training camera (objects, scenes), or None.
+    test_views: the same for the held-out cameras (for evaluation), or None.
+    image_view / image: one training view and its hidden image [H, W, 3] (image payload), or None.
+    bits: [L] float 0/1, or None. background: [3] colour behind the hidden render.
+    weight: λ of the hidden image loss.
+    """
+
+    spec: PayloadSpec
+    views: list | None
+    test_views: list | None
+    image_view: int | None
+    image: torch.Tensor | None
+    bits: torch.Tensor | None
+    background: torch.Tensor
+    weight: float
+
+    @property
+    def has_images(self) -> bool:
+        return self.views is not None or self.image is not None
+
+
+def builtin_emblem(height: int, width: int) -> np.ndarray:
+    """A procedural copyright emblem [H, W, 3]: rings and a checkered cross on a warm field."""
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    u, v = (x + 0.5) / width - 0.5, (y + 0.5) / height - 0.5
+    r = np.hypot(u * width / height, v)
+    rings = (np.sin(r * 60.0) > 0).astype(np.float32)
+    cross = ((np.abs(u) < 0.06) | (np.abs(v) < 0.06)) & ((np.floor(x / 4) + np.floor(y / 4)) % 2 == 0)
+    img = np.stack([0.9 - 0.5 * rings, 0.55 + 0.3 * rings, 0.2 + 0.2 * rings], axis=-1)
+    img[cross] = (0.1, 0.1, 0.5)
+    return np.clip(img, 0, 1).astype(np.float32)
+
+
+def build_payload(spec: PayloadSpec, scene: SceneData, device) -> Payload:
+    to = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32), device=device)  # noqa: E731
+    views = test_views = image = image_view = bits = None
+    if spec.kind in ("object", "scene"):
+        if scene.hidden_kind is None or any(c.hidden is None for c in scene.train):
+            raise ValueError(f"payload {spec.kind!r} needs hidden views: scene {scene.name!r} has none "
+                             "(synthetic: pass --hide OBJECT; real data: --hidden-dir)")
+        views = [to(c.hidden) for c in scene.train]
+        test_views = [to(c.hidden) for c in scene.test] if all(c.hidden is not None for c in scene.test) else None
+    elif spec.kind == "image":
+        if not 0 <= spec.image_view < len(scene.train):
+            raise ValueError(f"image payload view {spec.image_view} is not a training view (0..{len(scene.train) - 1})")
+        cam = scene.train[spec.image_view]
+        raw = builtin_emblem(cam.height, cam.width) if spec.image == "builtin" else read_image(spec.image)[0]
+        image, image_view = to(resize_image(raw, (cam.width, cam.height))), spec.image_view
+    if spec.bits:
+        if spec.bit_string:
+            values = [int(b) for b in spec.bit_string]
+        else:
+            values = torch.randint(0, 2, (spec.bits,), generator=torch.Generator().manual_seed(spec.seed)).tolist()
+        bits = to(values)
+    background = scene.hidden_background if scene.hidden_background is not None else scene.background
+    if spec.kind == "image" or background is None:
+        background = scene.background if scene.background is not None else (0.0, 0.0, 0.0)
+    return Payload(spec, views, test_views, image_view, image, bits, to(background),
+                   HIDDEN_WEIGHT.get(spec.kind, 0.0))

@@ -1,0 +1,114 @@
+"""Region-aware density optimization (RDO, the paper's Algorithm 1) and its ablations.
+
+Two sets of gradient statistics: ∇_ori from the public render every step, ∇_hid from the hidden
+render every ``hidden_every`` steps (accumulating it more slowly holds back the growth of anchors
+that serve only the hidden object). Anchors grown from ∇_hid form Γ_hid; DBSCAN over Γ_hid gives
+the bounding box of the dense hidden region, inside which the public growth threshold drops to
+τ_fix / r_down, so public anchors multiply there and cover the hidden ones. Γ_hid grows at τ_fix;
+pruning (by opacity, from both branches) runs over Γ_ori ∪ Γ_hid.
+
+Modes (the ablations of the paper's Table 4 and appendix):
+- "rdo": the above.
+- "scaffold" (w/o RDO): Scaffold-GS's strategy on one gradient accumulated from both renders at
+  every step, one threshold, no Γ_hid and no box.
+- "global": RDO's two statistics, but τ_fix / r_down everywhere (no box): the costly alternative.
+- "shared": one gradient (both renders, every step) drives both Γ_ori and Γ_hid growth, box kept.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from ..train.strategy import ScaffoldStrategy
+
+MODES = ("rdo", "scaffold", "global", "shared")
+
+
+@dataclasses.dataclass
+class RegionAwareStrategy(ScaffoldStrategy):
+    mode: str = "rdo"
+    r_down: float = 4.0
+    hidden_every: int = 2
+    use_bbox: bool = True  # False for a whole hidden scene: a box around it would be the whole scene
+    dbscan_eps_voxels: float = 12.0  # DBSCAN radius in base voxels
+    dbscan_min_samples: int = 8
+    anchor_state_keys = ScaffoldStrategy.anchor_state_keys + ("is_hidden",)
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"RDO mode must be one of {MODES}, got {self.mode!r}")
+
+    def initialize_state(self, model) -> dict[str, torch.Tensor]:
+        state = super().initialize_state(model)
+        state["hid_grad_accum"] = torch.zeros_like(state["grad_accum"])
+        state["hid_grad_denom"] = torch.zeros_like(state["grad_denom"])
+        state["is_hidden"] = torch.zeros_like(state["anchor_denom"])  # 1: the anchor is in Γ_hid
+        state["bbox"] = torch.full((6,), float("nan"), device=model.xyz.device)  # min xyz, max xyz
+        return state
+
+    def step_post_backward(self, model, optimizer, state, step, gaussians, info, generator=None, hidden=None):
+        """``hidden``: (gaussians, info) of the hidden render of this step, or None."""
+        if step <= self.start_stat or step > self.update_until:
+            return {}
+        k = model.n_offsets
+        self.accumulate(state, gaussians, info, k)
+        if hidden is not None:
+            g_hid, info_hid = hidden
+            # Opacity: an anchor that only serves the hidden branch is still useful.
+            opacity = g_hid["neural_opacity"].detach().clamp_min(0.0).view(-1, k).sum(dim=1)
+            state["opacity_accum"][g_hid["visible_mask"]] += opacity
+            if self.mode in ("scaffold", "shared"):  # one gradient for both branches, every step
+                self.accumulate(state, g_hid, info_hid, k, opacity=False)
+            elif step % self.hidden_every == 0:  # ∇_hid, accumulated more slowly
+                self.accumulate(state, g_hid, info_hid, k, prefix="hid_", opacity=False)
+        if step > self.update_from and step % self.update_interval == 0:
+            return self.adjust(model, optimizer, state, generator)
+        return {}
+
+    def public_threshold(self, model, state) -> float | torch.Tensor:
+        """τ for growing Γ_ori: τ_fix, τ_fix / r_down inside the hidden box (per Gaussian [N·k])."""
+        if self.mode == "global":
+            return self.grad_threshold / self.r_down
+        if self.mode == "scaffold" or not self.use_bbox or torch.isnan(state["bbox"]).any():
+            return self.grad_threshold
+        lo, hi = state["bbox"][:3], state["bbox"][3:]
+        inside = ((model.xyz >= lo) & (model.xyz <= hi)).all(dim=1)
+        tau = torch.full((model.num_anchors,), self.grad_threshold, device=model.xyz.device)
+        tau[inside] = self.grad_threshold / self.r_down
+        return tau.repeat_interleave(model.n_offsets)
+
+    @torch.no_grad()
+    def update_bbox(self, model, state) -> None:
+        """DBSCAN over Γ_hid; the box of its largest cluster (noise points ignored)."""
+        from sklearn.cluster import DBSCAN
+
+        pts = model.xyz[state["is_hidden"] > 0].cpu().numpy()
+        if len(pts) < self.dbscan_min_samples:
+            return
+        labels = DBSCAN(eps=self.dbscan_eps_voxels * model.voxel_size, min_samples=self.dbscan_min_samples).fit(pts).labels_
+        clustered = labels[labels >= 0]
+        if clustered.size == 0:
+            return
+        biggest = pts[labels == np.bincount(clustered).argmax()]
+        box = np.concatenate([biggest.min(0), biggest.max(0)])
+        state["bbox"] = torch.as_tensor(box, dtype=torch.float32, device=model.xyz.device)
+
+    def adjust(self, model, optimizer, state, generator=None) -> dict:
+        if self.mode in ("rdo", "shared") and self.use_bbox:
+            self.update_bbox(model, state)
+        if self.mode == "shared":  # Γ_hid grows from the very gradient that grows Γ_ori
+            state["hid_grad_accum"] = state["grad_accum"].clone()
+            state["hid_grad_denom"] = state["grad_denom"].clone()
+        grown_ori = self.grow(model, optimizer, state, threshold=self.public_threshold(model, state),
+                              generator=generator)
+        grown_hid = 0
+        if self.mode != "scaffold":
+            n_before = model.num_anchors
+            grown_hid = self.grow(model, optimizer, state, prefix="hid_", threshold=self.grad_threshold,
+                                  generator=generator)
+            state["is_hidden"][n_before:] = 1.0
+        pruned = self.prune(model, optimizer, state)
+        return {"grown": grown_ori, "grown_hidden": grown_hid, "pruned": pruned,
+                "hidden_anchors": int(state["is_hidden"].sum())}

@@ -1,0 +1,102 @@
+"""SecureGS training: the Scaffold-GS trainer plus a private hidden branch.
+
+Per step: the public render of a training view gives ℓ_ori; the private heads decode the same
+anchors into hidden Gaussians (positions from F_o†) rendered from the same camera against the
+payload's hidden view (or, for an image payload, from the one chosen view) for λ·ℓ_hid; a bit
+payload adds a BCE term on the per-anchor votes of F_b†. One backward through both renders, then
+the region-aware strategy looks at both branches' gradients.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ..data import Camera, SceneData
+from ..train.losses import psnr, ssim
+from ..train.trainer import ScaffoldTrainer, TrainConfig
+from .heads import PrivateHeads
+from .payload import BIT_WEIGHT, PayloadSpec, build_payload
+from .strategy import RegionAwareStrategy
+
+
+class SecureTrainer(ScaffoldTrainer):
+    """``private``: the key's heads; ``payload``: the hidden targets."""
+
+    def __init__(self, scene: SceneData, config: TrainConfig, payload: PayloadSpec, device="cpu",
+                 mode: str = "rdo", hdger: bool = True):
+        strategy = RegionAwareStrategy.for_iterations(config.iterations, mode=mode,
+                                                      use_bbox=payload.kind in ("object", "image"))
+        super().__init__(scene, config, device=device, strategy=strategy)
+        self.payload = build_payload(payload, scene, self.device)
+        self.private = PrivateHeads(self.heads, bits=payload.bits, offsets=hdger,
+                                    hidden=self.payload.has_images).to(self.device)
+        self.optimizer = self._make_optimizer()  # now with the private groups
+
+    def head_groups(self) -> dict:
+        groups = dict(self.heads.named_mlps())
+        private = getattr(self, "private", None)  # absent while the base class builds its optimizer
+        if private is not None:
+            groups.update({"private_" + name: module for name, module in private.named_mlps().items()})
+        return groups
+
+    # -- rendering ------------------------------------------------------------------------------
+
+    def render_hidden(self, cam: Camera, camera_index: int | None = None, **raster_options) -> dict:
+        """The hidden branch's render of a view (needs the private heads: the key)."""
+        if self.private.decoder is None:
+            raise ValueError("this payload hides no image: there is no hidden view to render")
+        return self.render_branch(cam, self.private.decoder, self.payload.background, camera_index,
+                                  offset_source=self.private.hidden_offsets, **raster_options)
+
+    def extra_losses(self, index: int, loss: torch.Tensor):
+        p, extra, hidden = self.payload, {}, None
+        view = index if p.views is not None else p.image_view
+        if view is not None:
+            out = self.render_hidden(self.scene.train[view], camera_index=view)
+            target = p.views[view] if p.views is not None else p.image
+            loss = loss + p.weight * self.image_loss(out, target)
+            hidden = (out["gaussians"], out["info"])
+            extra["psnr_hidden"] = psnr(out["image"].detach(), target)
+        if p.bits is not None:
+            logits = self.private.bit_logits(self.model.feat)
+            loss = loss + BIT_WEIGHT * F.binary_cross_entropy_with_logits(logits, p.bits.expand_as(logits))
+        return loss, hidden, extra
+
+    # -- evaluation -----------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def evaluate_hidden(self) -> dict:
+        """Hidden-branch metrics: PSNR/SSIM on held-out views (object, scene) or at the image's
+        view, and bit accuracy."""
+        from ..train import render_fps
+
+        p, out = self.payload, {}
+        if p.views is not None and p.test_views is not None:
+            pairs = [(self.render_hidden(c)["image"].clamp(0, 1), t) for c, t in zip(self.scene.test, p.test_views)]
+        elif p.views is not None:
+            pairs = [(self.render_hidden(c, i)["image"].clamp(0, 1), t)
+                     for i, (c, t) in enumerate(zip(self.scene.train, p.views))]
+        elif p.image is not None:
+            pairs = [(self.render_hidden(self.scene.train[p.image_view], p.image_view)["image"].clamp(0, 1), p.image)]
+        else:
+            pairs = []
+        if pairs:
+            out["psnr_hidden"] = sum(psnr(a, b) for a, b in pairs) / len(pairs)
+            out["ssim_hidden"] = sum(float(ssim(a, b)) for a, b in pairs) / len(pairs)
+            cams = self.scene.test or self.scene.train
+            out["fps_hidden"] = render_fps(self.render_hidden, cams, self.device)
+        if p.bits is not None:
+            decoded = self.private.decode_bits(self.model.feat)
+            out["bit_accuracy"] = float((decoded == p.bits.long()).float().mean())
+            out["bits"] = p.bits.long().tolist()
+            out["bits_decoded"] = decoded.tolist()
+        return out
+
+    # -- checkpoints ----------------------------------------------------------------------------
+
+    def checkpoint_state(self) -> dict:
+        return {**super().checkpoint_state(), "private": self.private.state_dict()}
+
+    def restore(self, state: dict, path) -> None:
+        self.private.load_state_dict(state["private"])
+        super().restore(state, path)

@@ -1,0 +1,173 @@
+"""SecureGS: payloads, private heads, region-aware densification, the release/key split, reveal."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from securegs_warp.cli import main
+from securegs_warp.data import make_synthetic_scene
+from securegs_warp.io import anchor_ply_properties
+from securegs_warp.io.gs_ply import read_vertex_ply
+from securegs_warp.keys import KeyFileError
+from securegs_warp.secure import PayloadSpec, SecureTrainer
+from securegs_warp.secure.container import open_container, save_container
+from securegs_warp.secure.security import exposure
+from securegs_warp.train import TrainConfig
+
+TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
+
+
+@pytest.fixture(scope="module")
+def hidden_scene():
+    return make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2, n_points=600)
+
+
+@pytest.fixture(scope="module")
+def trained(hidden_scene):
+    """A container hiding the mug and 48 bits, trained briefly with frequent RDO updates."""
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=60, tile_size=8), PayloadSpec.parse("object+bits:48"))
+    s = trainer.strategy
+    s.start_stat, s.update_from, s.update_interval, s.update_until = 0, 0, 10, 60
+    s.dbscan_min_samples = 4
+    history = [trainer.step() for _ in range(60)]
+    return trainer, history
+
+
+def test_payload_spec_parsing():
+    spec = PayloadSpec.parse("object+bits:48")
+    assert (spec.kind, spec.bits) == ("object", 48)
+    spec = PayloadSpec.parse("image:builtin@3")
+    assert (spec.kind, spec.image, spec.image_view) == ("image", "builtin", 3)
+    assert PayloadSpec.parse("bits:01101").bit_string == "01101"
+    for bad, match in (("bits:0", "length"), ("bits:300", "length"), ("sound", "unknown payload"), ("", "empty")):
+        with pytest.raises(ValueError, match=match):
+            PayloadSpec.parse(bad)
+
+
+def test_object_payload_needs_hidden_views():
+    scene = make_synthetic_scene(width=24, height=18, n_train=3, n_test=1, n_points=200)
+    with pytest.raises(ValueError, match="hidden views"):
+        SecureTrainer(scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"))
+
+
+def test_private_heads_mirror_public_shapes(trained):
+    trainer, _ = trained
+    public = {k: v.shape for k, v in trainer.heads.state_dict().items()}
+    private = {k: v.shape for k, v in trainer.private.decoder.state_dict().items()}
+    assert public == private
+    d, k = trainer.model.feat_dim, trainer.model.n_offsets
+    assert trainer.private.offset_mlp[0].weight.shape == (d, d + 3)
+    assert trainer.private.offset_mlp[-1].weight.shape == (3 * k, d)
+    assert trainer.private.bit_mlp[-1].weight.shape == (48, d)
+
+
+def test_rdo_grows_a_hidden_set_and_finds_its_box(trained, hidden_scene):
+    trainer, history = trained
+    state = trainer.strategy_state
+    n = trainer.model.num_anchors
+    assert state["is_hidden"].shape == (n,) and state["hid_grad_accum"].shape == (n * trainer.model.n_offsets,)
+    assert sum(h.get("grown_hidden", 0) for h in history) > 0
+    assert int(state["is_hidden"].sum()) > 0
+    box = state["bbox"]
+    assert not torch.isnan(box).any()
+    # The box of the dense hidden anchors overlaps the hidden object's true box.
+    true_lo, true_hi = (torch.as_tensor(v) for v in hidden_scene.hidden_bbox)
+    assert (torch.minimum(box[3:], true_hi) > torch.maximum(box[:3], true_lo)).all()
+    # Inside the box public growth uses τ_fix / r_down.
+    tau = trainer.strategy.public_threshold(trainer.model, state)
+    assert torch.isclose(tau.min(), torch.tensor(trainer.strategy.grad_threshold / trainer.strategy.r_down))
+    assert history[-1]["psnr_hidden"] > history[0]["psnr_hidden"] + 3
+
+
+def test_bits_are_decoded_exactly(trained):
+    trainer, _ = trained
+    assert trainer.evaluate_hidden()["bit_accuracy"] == 1.0
+
+
+@pytest.mark.parametrize("length", [1, 256])
+def test_bit_lengths_1_and_256(hidden_scene, length):
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, tile_size=8, densify=False),
+                            PayloadSpec.parse(f"bits:{length}", seed=length))
+    assert trainer.private.decoder is None  # a bit payload renders nothing hidden
+    for _ in range(30):
+        trainer.step()
+    assert trainer.evaluate_hidden()["bit_accuracy"] == 1.0
+
+
+def test_release_is_plain_scaffold_gs_and_holds_no_private_tensor(trained, tmp_path):
+    trainer, _ = trained
+    public, key = save_container(tmp_path, trainer.model, trainer.heads, trainer.private, {"payload": "object"})
+    assert sorted(p.name for p in public.iterdir()) == ["color_mlp.pt", "cov_mlp.pt", "opacity_mlp.pt",
+                                                        "point_cloud.ply"]
+    names = [p.name for p in read_vertex_ply(public / "point_cloud.ply").properties]
+    assert names == anchor_ply_properties(trainer.model.n_offsets, trainer.model.feat_dim)
+    release = b"".join(p.read_bytes() for p in public.iterdir())
+    for name, tensor in trainer.private.state_dict().items():
+        raw = tensor.detach().float().contiguous().numpy().tobytes()
+        for start in range(0, len(raw) - 32, max(4, (len(raw) // 64) // 4 * 4)):
+            assert raw[start:start + 32] not in release, f"private tensor {name} found in the release"
+    for word in (b"offset_mlp", b"bit_mlp", b"decoder"):
+        assert word not in release
+
+
+def test_key_opens_only_its_own_container(trained, tmp_path, hidden_scene):
+    trainer, _ = trained
+    public, key = save_container(tmp_path / "a", trainer.model, trainer.heads, trainer.private, {}, passphrase="s3cret")
+    opened = open_container(public, key, "s3cret")
+    assert opened.private is not None
+    for a, b in zip(opened.private.state_dict().values(), trainer.private.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(KeyFileError, match="passphrase"):
+        open_container(public, key, "wrong")
+    with pytest.raises(KeyFileError, match="passphrase"):
+        open_container(public, key, None)
+    blob = bytearray(key.read_bytes())
+    blob[-10] ^= 0x01
+    (tmp_path / "tampered.sealed").write_bytes(bytes(blob))
+    with pytest.raises(KeyFileError):
+        open_container(public, tmp_path / "tampered.sealed", "s3cret")
+    other = SecureTrainer(hidden_scene, TrainConfig(iterations=2, tile_size=8, seed=1), PayloadSpec.parse("object"))
+    other_public, _ = save_container(tmp_path / "b", other.model, other.heads, other.private, {})
+    with pytest.raises(KeyFileError, match="another container"):
+        open_container(other_public, key, "s3cret")
+    assert open_container(public).private is None  # no key: the cover scene only
+
+
+def test_exposure_measures_anchors_tracing_the_hidden_surface():
+    g = np.random.default_rng(0)
+    sphere = g.normal(size=(2000, 3))
+    sphere = sphere / np.linalg.norm(sphere, axis=1, keepdims=True)
+    scene = g.uniform(-5, 5, size=(2000, 3)) * np.array([1, 1, 0]) + np.array([0, 0, -3])  # a floor far below
+    traced = exposure(sphere[::2] * 1.01, sphere, scene, radius=0.1)  # anchors on the hidden surface
+    spread = exposure(g.uniform(-1.1, 1.1, size=(4000, 3)), sphere, scene, radius=0.1)  # anchors filling the box
+    assert traced["surface_fraction"] > 0.95 and traced["coverage"] > 0.9
+    assert spread["surface_fraction"] < 0.4
+
+
+def test_cli_hide_reveal_demo(tmp_path, monkeypatch):
+    out = tmp_path / "c"
+    monkeypatch.setenv("KEYPASS", "correct horse")
+    assert main(["hide", "--out", str(out), "--iterations", "12", "--quiet", "--payload", "object+bits:8",
+                 "--passphrase-env", "KEYPASS", *TINY]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
+                "fps_hidden", "size_mb_public", "train_seconds"):
+        assert key in metrics, key
+    assert (out / "key.sealed").is_file() and not (out / "key.safetensors").exists()
+    assert sorted(p.name for p in (out / "renders").iterdir() if not p.name.startswith("test_")) == [
+        "hidden_view_with_key.png", "hidden_view_without_key.png", "public_view.png"]
+
+    revealed = tmp_path / "r"
+    assert main(["reveal", str(out / "public"), "--key", str(out / "key.sealed"), "--passphrase-env", "KEYPASS",
+                 "--out", str(revealed)]) == 0
+    assert len(json.loads((revealed / "bits.json").read_text())["bits"]) == 8
+    assert (revealed / "hidden_3dgs.ply").stat().st_size > 0
+    assert any(p.name.startswith("hidden_") for p in (revealed / "renders").iterdir())
+
+    keyless = tmp_path / "k"
+    assert main(["reveal", str(out / "public"), "--out", str(keyless), *TINY]) == 0
+    assert not any(p.name.startswith("hidden_") for p in (keyless / "renders").iterdir())
+    monkeypatch.setenv("KEYPASS", "wrong")
+    assert main(["reveal", str(out / "public"), "--key", str(out / "key.sealed"), "--passphrase-env", "KEYPASS",
+                 "--out", str(tmp_path / "w")]) == 2
