@@ -389,7 +389,8 @@ def growth_candidates(
     found_xyz, found_feat, found_cell = [], [], []
     for level in range(update_depth):
         selected = (grads >= threshold * (update_hierachy_factor // 2) ** level) & gaussian_mask
-        selected &= torch.rand(n * k, generator=generator, device=device) > 0.5 ** (level + 1)
+        # Drawn on the CPU (the generator lives there), so runs are the same on every device.
+        selected &= torch.rand(n * k, generator=generator).to(device) > 0.5 ** (level + 1)
         if level > 0 and not found_xyz:
             continue
         cell = voxel_size * (update_init_factor // update_hierachy_factor**level)
