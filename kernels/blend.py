@@ -15,10 +15,18 @@ to global memory by one lane: a block-wide reduction per Gaussian costs several 
 Per-pixel rule (gsplat 1.5): centre at +0.5; σ = ½(a·dx² + c·dy²) + b·dx·dy, skipped if σ < 0;
 α = min(alpha_max, o·e^{−σ}), skipped if α < alpha_min; stop *before* a Gaussian that would bring
 the transmittance to ≤ t_min; colour = Σ cᵢαᵢTᵢ + T·background.
+
+Accuracy-for-time variants (compile-time, see ``blend_kernels``): colours read from a float16 table
+(half the bytes per Gaussian in global and shared memory; arithmetic stays float32 and the colour
+gradients are written in float32), and Warp's fast math.
 """
 import functools
 
 import warp as wp
+
+# Element type of the colour table read by the blending kernels, by ``color_storage`` name.
+COLOR_STORAGES = {"float32": wp.float32, "float16": wp.float16}
+
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
@@ -66,10 +74,11 @@ _BATCH_SHARED_BYTES = 24 * 1024
 CPU_BATCH = 32
 
 
-def batch_size(channels: int, block: int, with_depth: bool) -> int:
+def batch_size(channels: int, block: int, with_depth: bool, color_storage: str) -> int:
     """Gaussians gathered per batch: one per thread of the block (at least 32), fewer when the
     feature channels are wide enough to overflow the shared-memory budget."""
-    per_gaussian = 4 * (1 + 2 + 3 + 1 + channels + int(with_depth))
+    color_bytes = wp.types.type_size_in_bytes(COLOR_STORAGES[color_storage])
+    per_gaussian = 4 * (1 + 2 + 3 + 1 + int(with_depth)) + color_bytes * channels
     b = max(block, 32)
     while b > 32 and b * per_gaussian > _BATCH_SHARED_BYTES:
         b //= 2
@@ -77,16 +86,21 @@ def batch_size(channels: int, block: int, with_depth: bool) -> int:
 
 
 @functools.lru_cache(maxsize=None)
-def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool):
+def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
+                  color_storage: str, fast_math: bool):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 
     ``cooperative``: gather each batch into shared memory once per block (CUDA). Without it each
     thread reads the Gaussians straight from global memory: the CPU's one-thread blocks would
     only pay for copying a batch that no other thread reads.
+    ``color_storage``: element type of the ``colors`` [N, C] table the kernels read ("float32" or
+    "float16", a key of ``COLOR_STORAGES``); the colour gradient ``v_colors`` is float32 either way.
+    ``fast_math``: compile with Warp's ``fast_math`` module option (see ``projection_kernel``).
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
+    ColorT = COLOR_STORAGES[color_storage]
     C = channels
     TS = tile_size
     B = batch
@@ -102,7 +116,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         means2d: wp.array(dtype=wp.vec2),
         conics: wp.array(dtype=wp.vec3),
         opacities: wp.array(dtype=float),
-        colors: wp.array2d(dtype=float),
+        colors: wp.array2d(dtype=ColorT),
         depths: wp.array(dtype=float),
         background: wp.array(dtype=float),
         width: int,
@@ -172,10 +186,11 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             break
                         w = alpha * T
                         for c in range(C):
+                            # float(): widen a float16 colour (the identity for float32).
                             if wp.static(COOP):
-                                acc[c] = acc[c] + col_t[j, c] * w
+                                acc[c] = acc[c] + float(col_t[j, c]) * w
                             else:
-                                acc[c] = acc[c] + colors[gid, c] * w
+                                acc[c] = acc[c] + float(colors[gid, c]) * w
                         if wp.static(DEPTH == 1):
                             if wp.static(COOP):
                                 acc_depth += dep_t[j] * w
@@ -198,7 +213,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         means2d: wp.array(dtype=wp.vec2),
         conics: wp.array(dtype=wp.vec3),
         opacities: wp.array(dtype=float),
-        colors: wp.array2d(dtype=float),
+        colors: wp.array2d(dtype=ColorT),
         depths: wp.array(dtype=float),
         background: wp.array(dtype=float),
         width: int,
@@ -299,9 +314,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         d_alpha = float(0.0)
                         for c in range(C):
                             if wp.static(COOP):
-                                col = col_t[j, c]
+                                col = float(col_t[j, c])
                             else:
-                                col = colors[gid, c]
+                                col = float(colors[gid, c])
                             g[_COLOR + c] = w * v_img[c]
                             d_alpha += (col * T - buf[c] * ra) * v_img[c]
                             buf[c] = buf[c] + col * w
@@ -335,10 +350,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         if wp.static(DEPTH == 1):
                             wp.atomic_add(v_depths, gid, g[_COLOR + C])
 
-    tag = f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
+    tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
+           f"_{color_storage}{'_fast' if fast_math else ''}")
     forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
     backward.__name__ = backward.__qualname__ = f"blend_backward_{tag}"
-    return (
-        wp.kernel(forward, enable_backward=False, module="unique"),
-        wp.kernel(backward, enable_backward=False, module="unique"),
-    )
+    # fast_math is a module option: each variant gets its own module.
+    options = dict(enable_backward=False, module="unique", module_options={"fast_math": fast_math})
+    return wp.kernel(forward, **options), wp.kernel(backward, **options)

@@ -39,13 +39,16 @@ def quat_to_rotmat(q: wp.vec4) -> wp.mat33:
 
 
 @functools.lru_cache(maxsize=None)
-def projection_kernel(antialiased: bool, radius_rule: str):
+def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
     """The projection kernel specialised for one option set.
 
     antialiased: multiply opacity by the Mip-Splatting compensation sqrt(det(Σ)/det(Σ + εI)).
     radius_rule: "opacity_aware" (gsplat 1.5: per-axis, extent min(3.33, sqrt(2 ln(o/α_min)))),
         "3sigma" (original 3DGS: square, 3·sqrt(λ_max), no opacity test),
         "tight" (per-axis opacity-aware radius capped by the major axis and the image size).
+    fast_math: compile with Warp's ``fast_math`` module option (CUDA: nvcc ``--use_fast_math``,
+        approximate exp/log/sqrt/division and flushed denormals; the float64 camera transform is
+        unaffected). Warp 1.19 does not pass it to its CPU compiler: there it changes nothing.
     """
     if radius_rule not in RADIUS_RULES:
         raise ValueError(f"radius_rule must be one of {RADIUS_RULES}, got {radius_rule!r}")
@@ -165,5 +168,7 @@ def projection_kernel(antialiased: bool, radius_rule: str):
         else:
             radii[i] = wp.vec2i(0, 0)
 
-    project.__name__ = project.__qualname__ = f"project_{'aa' if antialiased else 'classic'}_{radius_rule}"
-    return wp.kernel(project, module="unique")
+    tag = f"{'aa' if antialiased else 'classic'}_{radius_rule}{'_fast' if fast_math else ''}"
+    project.__name__ = project.__qualname__ = f"project_{tag}"
+    # fast_math is a module option: each variant gets its own module.
+    return wp.kernel(project, module="unique", module_options={"fast_math": fast_math})

@@ -14,7 +14,7 @@ import torch
 import warp as wp
 
 from .kernels import binning
-from .kernels.blend import CPU_BATCH, batch_size, blend_kernels
+from .kernels.blend import COLOR_STORAGES, CPU_BATCH, batch_size, blend_kernels
 from .kernels.projection import RADIUS_RULES, projection_kernel
 
 DEPTH_MODES = (None, "accumulated", "expected")
@@ -24,8 +24,18 @@ DEPTH_MODES = (None, "accumulated", "expected")
 class RasterOptions:
     """Everything that changes what or how ``rasterize`` computes. Defaults are gsplat 1.5's.
 
-    Flags (antialiased, radius_rule, tile_size, depth on/off, channel count) select compiled kernel
-    variants, so an effect that is off costs nothing; the numbers are run-time kernel arguments.
+    Flags (antialiased, radius_rule, tile_size, depth on/off, channel count, fast_math,
+    color_storage) select compiled kernel variants, so an effect that is off costs nothing; the
+    numbers are run-time kernel arguments.
+
+    Accuracy for time (scripts/accuracy_vs_time.py measures both):
+    fast_math: projection and blending compiled with Warp's fast math (CUDA only; Warp 1.19's
+        CPU compiler ignores the option, so on the CPU it changes nothing).
+    color_storage: "float16" blends from a float16 copy of ``colors`` made once per render (half
+        the bytes per colour read, for wide feature fields on the GPU; on the CPU each read pays a
+        conversion). The image error is at most the colours' float16 rounding (≤ 2⁻¹¹·max|colour|,
+        2⁻¹² for colours in [0, 1]); colour gradients are still float32. Colours beyond ±65504
+        would become inf there and raise ValueError.
     """
 
     near_plane: float = 0.01
@@ -39,6 +49,8 @@ class RasterOptions:
     antialiased: bool = False
     radius_rule: str = "opacity_aware"
     render_depth: str | None = None
+    fast_math: bool = False
+    color_storage: str = "float32"
     # CUDA launch shape only (results do not depend on it): threads per block of the forward and
     # backward blending kernels; a block owns that many pixels of a tile and shares each batch of
     # Gaussians between them. On an H100 (2026-11-22) backward blocks of 256 beat 32 (9.6 vs
@@ -51,6 +63,8 @@ class RasterOptions:
             raise ValueError(f"tile_size must be 8, 16 or 32, got {self.tile_size}")
         if self.radius_rule not in RADIUS_RULES:
             raise ValueError(f"radius_rule must be one of {RADIUS_RULES}, got {self.radius_rule!r}")
+        if self.color_storage not in COLOR_STORAGES:
+            raise ValueError(f"color_storage must be one of {tuple(COLOR_STORAGES)}, got {self.color_storage!r}")
         if self.render_depth not in DEPTH_MODES:
             raise ValueError(f"render_depth must be one of {DEPTH_MODES}, got {self.render_depth!r}")
         if not 0.0 < self.near_plane < self.far_plane:
@@ -99,7 +113,8 @@ def rasterize(
         background: [C] colour behind the Gaussians, or None for zeros.
         **options: fields of ``RasterOptions`` (near_plane, far_plane, eps2d, radius_clip,
             alpha_min, alpha_max, transmittance_min, tile_size, antialiased, radius_rule,
-            render_depth=None | "accumulated" | "expected").
+            render_depth=None | "accumulated" | "expected", fast_math, color_storage="float32" |
+            "float16").
 
     Returns:
         image [H, W, C], alpha [H, W, 1], info: dict with
@@ -115,8 +130,13 @@ def rasterize(
     opts = RasterOptions(**options)
     named = _validated(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
     means, quats, scales, opacities, colors, viewmat, K, background = named.values()
+    # The table the blending kernels read: a float16 copy made once per render, or colors itself.
+    color_table = colors.to(torch.float16) if opts.color_storage == "float16" else colors
+    checked = dict(named)
+    if color_table is not colors:
+        checked["colors (as float16: |value| > 65504)"] = color_table
     # Finiteness is checked on the device and read back with the intersection count (one sync).
-    finite = torch.stack([torch.isfinite(t).all() for t in named.values()])
+    finite = torch.stack([torch.isfinite(t).all() for t in checked.values()])
     n = means.shape[0]
     info = {
         "means2d_grad": torch.zeros(n, 2, device=means.device, dtype=torch.float32),
@@ -126,8 +146,8 @@ def rasterize(
     }
     camera = torch.cat([viewmat.detach().reshape(16), K.detach()[[0, 1, 0, 1], [0, 1, 2, 2]]]).double()
     image, alpha, depth, radii, means2d, conics, depths, opac, n_isect = _Rasterize.apply(
-        means, quats, scales, opacities, colors, background, camera, int(width), int(height), opts, info,
-        (tuple(named), finite),
+        means, quats, scales, opacities, colors, color_table, background, camera, int(width), int(height), opts,
+        info, (tuple(checked), finite),
     )
     info.update(radii=radii, means2d=means2d, conics=conics, depths=depths, opacities=opac, n_intersections=n_isect)
     if opts.render_depth == "accumulated":
@@ -181,7 +201,8 @@ def _wp(t: torch.Tensor, dtype, grad: bool = False, retain_grad: bool = False):
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, background, camera, width, height, opts, info, finite):
+    def forward(ctx, means, quats, scales, opacities, colors, color_table, background, camera, width, height, opts,
+                info, finite):
         wp.init()  # idempotent; Warp must be up before its devices can be named
         device = wp.device_from_torch(means.device)
         n, c = colors.shape
@@ -196,7 +217,10 @@ class _Rasterize(torch.autograd.Function):
             w_quats = _wp(quats, wp.vec4, grad=True)
             w_scales = _wp(scales, wp.vec3, grad=True)
             w_opac = _wp(opacities, wp.float32, grad=True)
-            w_colors = _wp(colors, wp.float32, grad=True)
+            # Colours only reach the hand-written blend adjoint, which writes their float32 gradient
+            # here whatever the table's storage type.
+            w_colors = _wp(color_table, COLOR_STORAGES[opts.color_storage])
+            w_colors_grad = _wp(torch.zeros_like(colors), wp.float32)
             w_bg = _wp(background, wp.float32, grad=True)
 
             means2d = torch.zeros(n, 2, **f32)
@@ -214,7 +238,7 @@ class _Rasterize(torch.autograd.Function):
             tape = wp.Tape()
             with tape:
                 wp.launch(
-                    projection_kernel(opts.antialiased, opts.radius_rule),
+                    projection_kernel(opts.antialiased, opts.radius_rule, opts.fast_math),
                     dim=n,
                     inputs=[w_means, w_quats, w_scales, w_opac, w_camera, width, height,
                             opts.near_plane, opts.far_plane, opts.eps2d, opts.alpha_min, opts.radius_clip],
@@ -235,19 +259,20 @@ class _Rasterize(torch.autograd.Function):
             w_last = _wp(last, wp.int32)
 
             cooperative = not (device.is_cpu and not wp.config.enable_cpu_blocks)
-            batch = batch_size(c, opts.block(opts.forward_block), with_depth) if cooperative else CPU_BATCH
-            fwd, bwd = blend_kernels(c, ts, with_depth, batch, cooperative)
+            fwd_block = opts.block(opts.forward_block)
+            batch = batch_size(c, fwd_block, with_depth, opts.color_storage) if cooperative else CPU_BATCH
+            fwd, bwd = blend_kernels(c, ts, with_depth, batch, cooperative, opts.color_storage, opts.fast_math)
             common = [ranges, sorted_ids, w_means2d, w_conics, w_opac_out, w_colors, w_depths, w_bg,
                       width, height, tiles_x, opts.alpha_min, opts.alpha_max]
             lanes = ts * ts  # one thread per pixel of a tile
-            wp.launch(fwd, dim=(tiles_x * tiles_y, lanes), block_dim=opts.block(opts.forward_block),
+            wp.launch(fwd, dim=(tiles_x * tiles_y, lanes), block_dim=fwd_block,
                       inputs=common + [opts.transmittance_min],
                       outputs=[w_image, w_alpha, w_depth_img, w_trans, w_last])
 
             def blend_adjoint():
                 wp.launch(bwd, dim=(tiles_x * tiles_y, lanes), block_dim=opts.block(opts.backward_block),
                           inputs=common + [w_trans, w_last, w_image.grad, w_alpha.grad, w_depth_img.grad],
-                          outputs=[w_means2d.grad, w_conics.grad, w_opac_out.grad, w_colors.grad,
+                          outputs=[w_means2d.grad, w_conics.grad, w_opac_out.grad, w_colors_grad,
                                    w_depths.grad, w_bg.grad])
 
             tape.record_func(blend_adjoint, arrays=[w_image, w_alpha, w_depth_img])
@@ -255,7 +280,7 @@ class _Rasterize(torch.autograd.Function):
         ctx.tape = tape
         ctx.device = means.device
         ctx.info = info
-        ctx.grads = (w_means.grad, w_quats.grad, w_scales.grad, w_opac.grad, w_colors.grad, w_bg.grad)
+        ctx.grads = (w_means.grad, w_quats.grad, w_scales.grad, w_opac.grad, w_colors_grad, w_bg.grad)
         ctx.out_grads = (w_image.grad, w_alpha.grad, w_depth_img.grad)
         ctx.means2d_grad = w_means2d.grad
         ctx.mark_non_differentiable(radii, means2d, conics, depths, opac_out)
@@ -271,7 +296,8 @@ class _Rasterize(torch.autograd.Function):
         ctx.info["means2d_grad"] += wp.to_torch(ctx.means2d_grad)
         grads = [wp.to_torch(g) for g in ctx.grads]
         ctx.tape = None  # release the Warp arrays
-        return (*grads, None, None, None, None, None, None)
+        # grads for means, quats, scales, opacities, colors (not color_table), background; none beyond.
+        return (*grads[:5], None, grads[5], None, None, None, None, None, None)
 
 
 def _stream(device: torch.device):

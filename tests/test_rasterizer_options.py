@@ -1,0 +1,159 @@
+"""The accuracy-for-time options of ``rasterize``: ``fast_math`` and ``color_storage="float16"``.
+
+Each variant is checked against the float64 reference with a tolerance that states its expected
+error, and with its effect neutral against the general kernels.
+"""
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from raster_cases import (DIFF_INPUTS, GRAD_TOL, IMAGE_TOL, assert_matches_reference, random_scene, relative_error,
+                          render_both)
+from securegs_warp import rasterize
+from securegs_warp.kernels.blend import batch_size, blend_kernels
+from securegs_warp.kernels.projection import projection_kernel
+
+
+def reference_errors(scene):
+    """Max |Δ| of image and alpha, and the relative gradient error of each input, against the reference."""
+    ours, ref = render_both(scene)
+    errors = {key: float((ours[key] - ref[key]).abs().max()) for key in ("image", "alpha")}
+    errors.update({name: relative_error(ours["grad_" + name], ref["grad_" + name]) for name in DIFF_INPUTS})
+    return errors
+
+
+def float16_rounding(colors):
+    """Largest change of a colour when stored as float16 (≤ 2⁻¹¹·|c|; ≤ 2⁻¹² for |c| < 1)."""
+    return float((colors.to(torch.float16).float() - colors).abs().max())
+
+
+# ---------------------------------------------------------------------------------------------
+# color_storage="float16"
+
+# Colour and background gradients do not read the colours (d image/d c_i = w_i, d image/d bg = T):
+# they keep the float32 tolerance. The other gradients read each colour once, through
+# d alpha_i = Σ_c (c_i T_i − buf_c/(1 − α_i))·v_c, so they inherit its relative rounding of at most
+# 2⁻¹¹ ≈ 4.9e-4 (measured 0.3e-4 to 3.1e-4 on these scenes); 3e-3 leaves room for cancellation
+# between the two terms.
+FLOAT16_GRAD_TOL = 3e-3
+
+
+@pytest.mark.parametrize("seed,channels,lo,hi", [(0, 3, 0.0, 1.0), (1, 16, -4.0, 4.0)])
+def test_float16_colors_match_reference(seed, channels, lo, hi):
+    scene = random_scene(seed, n=80, channels=channels, color_storage="float16")
+    scene.colors = lo + (hi - lo) * scene.colors  # RGB, or signed feature values
+    errors = reference_errors(scene)
+    # The image is Σ wᵢcᵢ + T·bg with Σ wᵢ ≤ 1: its error is at most the largest colour rounding
+    # (2.4e-4 for colours in [0, 1], 9.8e-4 for ±4; measured 1.6e-4 and 8.6e-4) plus the float32 error.
+    assert errors["image"] <= float16_rounding(scene.colors) + IMAGE_TOL, errors
+    assert errors["alpha"] <= IMAGE_TOL, errors
+    for name in DIFF_INPUTS:
+        tol = GRAD_TOL if name in ("colors", "background") else FLOAT16_GRAD_TOL
+        assert errors[name] <= tol, (name, errors)
+
+
+def render_with_grads(scene, **options):
+    """Image, alpha and every input gradient of one render (fixed cotangents)."""
+    inputs = {name: getattr(scene, name).detach().clone().requires_grad_(True) for name in DIFF_INPUTS}
+    image, alpha, _ = rasterize(**inputs, viewmat=scene.viewmat, K=scene.K, width=scene.width,
+                                height=scene.height, **options)
+    g = torch.Generator().manual_seed(5)
+    ((image * torch.randn(image.shape, generator=g)).sum() + (alpha * torch.randn(alpha.shape, generator=g)).sum()
+     ).backward()
+    return [image, alpha] + [inputs[name].grad for name in DIFF_INPUTS]
+
+
+def test_float16_exactly_representable_colors_are_bit_identical():
+    scene = random_scene(2, n=80, channels=5)
+    scene.colors = torch.round(scene.colors * 256) / 256  # 8-bit colours: exact in float16
+    general = render_with_grads(scene)
+    half = render_with_grads(scene, color_storage="float16")
+    for name, a, b in zip(["image", "alpha", *DIFF_INPUTS], general, half):
+        assert torch.equal(a, b), name
+
+
+def test_float16_overflow_raises():
+    scene = random_scene(3, n=10)
+    scene.colors[4, 1] = 1e5  # finite in float32, inf in float16
+    with pytest.raises(ValueError, match="float16"):
+        render_with_grads(scene, color_storage="float16")
+    with pytest.raises(ValueError, match="color_storage"):
+        render_with_grads(scene, color_storage="bfloat16")
+
+
+def test_float16_batches_twice_the_wide_gaussians():
+    # 64 channels: 288 B per float32 Gaussian overflow the shared-memory budget at 128 per batch.
+    assert batch_size(64, 256, False, "float16") == 2 * batch_size(64, 256, False, "float32")
+
+
+# The cooperative (CUDA) code path gathers the float16 colours into shared memory; run it on the
+# CPU with real multi-thread blocks in a fresh process (enable_cpu_blocks is global).
+COOPERATIVE = textwrap.dedent("""
+    import json, sys
+    import torch
+    import warp as wp
+    wp.config.quiet = True
+    wp.config.enable_cpu_blocks = True
+    sys.path.insert(0, sys.argv[1])
+    from raster_cases import random_scene, render_both, relative_error, DIFF_INPUTS
+    from test_rasterizer_options import float16_rounding, render_with_grads
+
+    scene = random_scene(4, n=70, channels=3, width=37, height=29, color_storage="float16")
+    ours, ref = render_both(scene)
+    row = {"image": float((ours["image"] - ref["image"]).abs().max()), "bound": float16_rounding(scene.colors)}
+    row.update({n: relative_error(ours["grad_" + n], ref["grad_" + n]) for n in DIFF_INPUTS})
+    scene.colors = torch.round(scene.colors * 256) / 256
+    general = render_with_grads(scene)
+    row["identical"] = all(torch.equal(a, b) for a, b in zip(general, render_with_grads(scene, color_storage="float16")))
+    print("RESULT" + json.dumps(row))
+""")
+
+
+def test_float16_cooperative_blocks():
+    tests_dir = str(Path(__file__).parent)
+    proc = subprocess.run([sys.executable, "-c", COOPERATIVE, tests_dir], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    row = json.loads(proc.stdout.split("RESULT", 1)[1])
+    assert row["identical"], row
+    assert row["image"] <= row["bound"] + IMAGE_TOL, row
+    for name in DIFF_INPUTS:
+        assert row[name] <= (GRAD_TOL if name in ("colors", "background") else FLOAT16_GRAD_TOL), (name, row)
+
+
+# ---------------------------------------------------------------------------------------------
+# fast_math
+
+# Same tolerances as the exact kernels. On the CPU Warp 1.19 does not pass fast_math to its
+# compiler (measured: bit-identical results). On CUDA it is nvcc --use_fast_math: __expf is within
+# 2 + ⌊1.17·|x|⌋ ulp, and only e^{-σ} with σ ≤ ln 255 is used (a larger σ gives α < 1/255, skipped),
+# so ≤ 8 ulp ≈ 5e-7 relative; division and square root are within 2 ulp, and denormals
+# flushed to zero lie far below 1e-4. Errors stay ~1e-6, as for the exact kernels.
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fast_math_matches_reference(seed):
+    assert_matches_reference(random_scene(seed, n=80, fast_math=True))
+
+
+def test_fast_math_with_float16_colors():
+    scene = random_scene(5, n=60, fast_math=True, color_storage="float16")
+    errors = reference_errors(scene)
+    assert errors["image"] <= float16_rounding(scene.colors) + IMAGE_TOL, errors
+    assert max(errors[name] for name in DIFF_INPUTS) <= FLOAT16_GRAD_TOL, errors
+
+
+def test_fast_math_is_a_module_option_of_its_own_kernels():
+    slow, fast = (projection_kernel(False, "opacity_aware", f) for f in (False, True))
+    assert slow.module is not fast.module
+    assert slow.module.options["fast_math"] is False and fast.module.options["fast_math"] is True
+    for kernel in blend_kernels(3, 16, False, 32, False, "float32", True):
+        assert kernel.module.options["fast_math"] is True
+
+
+def test_fast_math_off_is_the_default():
+    scene = random_scene(6, n=60)
+    for a, b in zip(render_with_grads(scene), render_with_grads(scene, fast_math=False)):
+        assert torch.equal(a, b)
