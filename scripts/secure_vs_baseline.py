@@ -52,7 +52,9 @@ def main():
     ap.add_argument("--iterations", type=int, default=600)
     ap.add_argument("--hide", default="mug")
     ap.add_argument("--payload", default="object+bits:48")
-    ap.add_argument("--modes", default="rdo,scaffold", help="SecureGS density modes to train")
+    ap.add_argument("--modes", default="rdo,scaffold",
+                    help="SecureGS variants: density modes rdo, scaffold (w/o RDO), global, shared; no-hdger "
+                         "(RDO with explicit hidden offsets)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/secure_vs_baseline"))
     args = ap.parse_args()
@@ -77,7 +79,9 @@ def main():
 
     for mode in args.modes.split(","):
         label = "SecureGS" if mode == "rdo" else f"SecureGS ({mode})"
-        sec = train(SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device, mode=mode), label)
+        hdger = mode != "no-hdger"
+        sec = train(SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device,
+                                  mode=mode if hdger else "rdo", hdger=hdger), label)
         ev, hid = sec.evaluate(), sec.evaluate_hidden()
         cams = scene.test
 

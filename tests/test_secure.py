@@ -171,3 +171,20 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch):
     monkeypatch.setenv("KEYPASS", "wrong")
     assert main(["reveal", str(out / "public"), "--key", str(out / "key.sealed"), "--passphrase-env", "KEYPASS",
                  "--out", str(tmp_path / "w")]) == 2
+
+
+def test_without_hdger_offsets_are_explicit_and_follow_growth(hidden_scene, tmp_path):
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, tile_size=8), PayloadSpec.parse("object"),
+                            hdger=False)
+    s = trainer.strategy
+    s.start_stat, s.update_from, s.update_interval, s.update_until = 0, 0, 10, 30
+    assert trainer.private.offset_mlp is None
+    for _ in range(30):
+        trainer.step()
+    model = trainer.model
+    assert model.hidden_offsets.shape == model.offsets.shape  # rows added and removed with the anchors
+    assert model.hidden_offsets.abs().sum() > 0  # trained
+    moments = trainer.optimizer.state[model.hidden_offsets]
+    assert moments["exp_avg"].shape == model.hidden_offsets.shape
+    with pytest.raises(ValueError, match="HDGER"):
+        save_container(tmp_path, model, trainer.heads, trainer.private, {})

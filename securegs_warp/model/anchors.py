@@ -124,7 +124,7 @@ def anchor_param_groups(model: "AnchorModel", lr: Mapping[str, float]) -> list[d
     ``lr`` maps each of those names to its learning rate (Scaffold-GS: xyz 0 (anchors stay put),
     offsets 0.01 * spatial scale, feat 0.0075, opacity 0.02, scaling 0.007, rotation 0.002).
     """
-    return [{"params": [getattr(model, name)], "lr": lr[name], "name": name} for name in ANCHOR_PARAM_NAMES]
+    return [{"params": [getattr(model, name)], "lr": lr[name], "name": name} for name in model.param_names]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -221,6 +221,16 @@ class AnchorModel(nn.Module):
     def n_offsets(self) -> int:
         return self.offsets.shape[1]
 
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """The per-anchor parameters: Scaffold-GS's six, plus ``hidden_offsets`` [N, k, 3] when a
+        SecureGS ablation ("w/o HDGER") stores the hidden Gaussians' offsets explicitly."""
+        return ANCHOR_PARAM_NAMES + (("hidden_offsets",) if hasattr(self, "hidden_offsets") else ())
+
+    def add_hidden_offsets(self) -> None:
+        """Start explicit hidden offsets at zero (w/o HDGER); they grow and prune with the anchors."""
+        self.hidden_offsets = nn.Parameter(torch.zeros_like(self.offsets))
+
     def gaussian_positions(self) -> torch.Tensor:
         """Positions [N, k, 3] of the neural Gaussians the stored offsets place:
         ``xyz + offsets * exp(scaling[:, :3])`` (Scaffold-GS's ``all_xyz`` in anchor growing)."""
@@ -245,7 +255,7 @@ class AnchorModel(nn.Module):
             )
         keep = ~prune_mask
         with torch.no_grad():
-            for name in ANCHOR_PARAM_NAMES:
+            for name in self.param_names:
                 value = getattr(self, name)[keep]
                 if name == "scaling" and max_log_gaussian_scale is not None:
                     value[:, 3:] = value[:, 3:].clamp_max(max_log_gaussian_scale)
@@ -266,8 +276,9 @@ class AnchorModel(nn.Module):
         _check_rows(g, self.feat_dim, self.n_offsets,
                     xyz=xyz, feat=feat, offsets=offsets, scaling=scaling, rotation=rotation, opacity=opacity)
         new_rows = dict(zip(ANCHOR_PARAM_NAMES, (xyz, feat, offsets, scaling, rotation, opacity)))
+        new_rows["hidden_offsets"] = torch.zeros_like(offsets)  # used only when the model has them
         with torch.no_grad():
-            for name in ANCHOR_PARAM_NAMES:
+            for name in self.param_names:
                 old = getattr(self, name)
                 extra = new_rows[name].to(old.device, old.dtype)
                 self._replace(name, torch.cat([old, extra]), optimizer,

@@ -29,6 +29,9 @@ def release_fingerprint(heads: ScaffoldHeads) -> str:
 def save_container(out: str | Path, model: AnchorModel, heads: ScaffoldHeads, private: PrivateHeads,
                    metadata: dict, passphrase: str | None = None) -> tuple[Path, Path]:
     """Write the release and the key; returns (public folder, key path)."""
+    if private.decoder is not None and private.offset_mlp is None:
+        raise ValueError("the w/o-HDGER ablation keeps explicit hidden offsets per anchor: it is a measurement "
+                         "mode and cannot be released as a container")
     out = Path(out)
     public = out / PUBLIC_DIR
     save_scaffold(public, model, heads)

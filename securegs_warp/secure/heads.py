@@ -17,8 +17,8 @@ class PrivateHeads(nn.Module):
     offset_mlp (F_o†): Linear(d+3, d), ReLU, Linear(d, 3k) — the hidden Gaussians' offsets from the
         blended anchor feature and view direction, so that no hidden offset is stored in the file
         (the paper's hybrid decoupled Gaussian encryption, HDGER). ``None`` in the "w/o HDGER"
-        ablation, where explicit offsets are trained instead (``explicit_offsets`` [N, k, 3], kept
-        with the key, one row per anchor).
+        ablation, where the anchors carry explicit hidden offsets instead
+        (``AnchorModel.hidden_offsets``; measured by the training scripts, not saved in a release).
     bit_mlp (F_b†): Linear(d, d), ReLU, Linear(d, L) — per-anchor bit logits; the message is the
         average over anchors (each anchor votes).
     scale_offsets: hidden offsets are in units of the anchor's offset scale exp(l_v[:3]), as the

@@ -30,6 +30,8 @@ class SecureTrainer(ScaffoldTrainer):
         self.payload = build_payload(payload, scene, self.device)
         self.private = PrivateHeads(self.heads, bits=payload.bits, offsets=hdger,
                                     hidden=self.payload.has_images).to(self.device)
+        if self.private.decoder is not None and not hdger:
+            self.model.add_hidden_offsets()
         self.optimizer = self._make_optimizer()  # now with the private groups
 
     def head_groups(self) -> dict:
@@ -45,8 +47,13 @@ class SecureTrainer(ScaffoldTrainer):
         """The hidden branch's render of a view (needs the private heads: the key)."""
         if self.private.decoder is None:
             raise ValueError("this payload hides no image: there is no hidden view to render")
+        source = self.private.hidden_offsets if self.private.offset_mlp is not None else self._explicit_offsets
         return self.render_branch(cam, self.private.decoder, self.payload.background, camera_index,
-                                  offset_source=self.private.hidden_offsets, **raster_options)
+                                  offset_source=source, **raster_options)
+
+    def _explicit_offsets(self, inputs) -> torch.Tensor:
+        """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
+        return self.model.hidden_offsets[inputs.anchor_index] * inputs.scaling[:, None, :3]
 
     def extra_losses(self, index: int, loss: torch.Tensor):
         p, extra, hidden = self.payload, {}, None

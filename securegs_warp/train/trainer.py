@@ -17,7 +17,7 @@ import torch
 
 from ..data import Camera, SceneData
 from ..io.atomic import atomic_write
-from ..model import AnchorModel, ScaffoldHeads, anchor_param_groups
+from ..model import ANCHOR_PARAM_NAMES, AnchorModel, ScaffoldHeads, anchor_param_groups
 from ..render import render_view
 from .losses import photometric_loss, psnr, ssim, volume_loss
 from .schedules import exponential_lr
@@ -119,9 +119,10 @@ class ScaffoldTrainer:
 
     def _make_optimizer(self) -> torch.optim.Adam:
         c = self.config
+        offset_lr = c.offset_lr_init * self.spatial_scale
         groups = anchor_param_groups(self.model, {
             "xyz": 0.0,  # Scaffold-GS keeps anchors where voxelisation put them
-            "feat": c.feature_lr, "offsets": c.offset_lr_init * self.spatial_scale,
+            "feat": c.feature_lr, "offsets": offset_lr, "hidden_offsets": offset_lr,
             "scaling": c.scaling_lr, "rotation": 0.0, "opacity": 0.0,
         })
         for name, module in self.head_groups().items():
@@ -132,7 +133,7 @@ class ScaffoldTrainer:
         c, step = self.config, self.step_count
         for group in self.optimizer.param_groups:
             name = group.get("name")
-            if name == "offsets":
+            if name in ("offsets", "hidden_offsets"):
                 group["lr"] = exponential_lr(c.offset_lr_init * self.spatial_scale,
                                              c.offset_lr_final * self.spatial_scale, c.iterations, step)
             elif name in self.head_groups():
@@ -237,9 +238,10 @@ class ScaffoldTrainer:
             raise ValueError(f"{path}: checkpoint was written with other training options; resume with the "
                              "run's own config")
         model_state = state["model"]
-        self.model = AnchorModel(**{name: model_state[name] for name in ("xyz", "feat", "offsets", "scaling",
-                                                                         "rotation", "opacity")},
+        self.model = AnchorModel(**{name: model_state[name] for name in ANCHOR_PARAM_NAMES},
                                  voxel_size=state["voxel_size"])
+        if "hidden_offsets" in model_state:
+            self.model.hidden_offsets = torch.nn.Parameter(model_state["hidden_offsets"])
         self.heads.load_state_dict(state["heads"])
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
