@@ -126,6 +126,8 @@ def main():
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--runs", type=int, default=20)
     parser.add_argument("--out", default=os.environ.get("OUT"), help="folder for results.json and results.md")
+    parser.add_argument("--options", default="", help="options of ours, e.g. tile_size=8,fast_math=True "
+                                                          "(default: gsplat's defaults)")
     parser.add_argument("--variant", action="append", default=[],
                         help="extra configuration of ours timed alongside, e.g. b64:backward_block=64")
     args = parser.parse_args()
@@ -148,7 +150,8 @@ def main():
             g = torch.Generator(device="cpu").manual_seed(1)
             grads = (torch.rand(args.height, args.width, 3, generator=g).to(device),
                      torch.rand(args.height, args.width, 1, generator=g).to(device))
-            renderers = {"ours": ours}
+            _, ours_options = parse_variant(":" + args.options)
+            renderers = {"ours": lambda *a: ours(*a, **ours_options)}
             for name, options in map(parse_variant, args.variant):
                 renderers[name] = lambda *a, options=options: ours(*a, **options)
             if have_gsplat:
@@ -160,8 +163,9 @@ def main():
                     row[f"{name}_fwd_ms"] = timed(call, False, device, args.warmup, args.runs, grads)
                 row[f"{name}_fwdbwd_ms"] = timed(call, True, device, args.warmup, args.runs, grads)
             with torch.no_grad():
-                img, alpha = ours(scene, viewmat, K, args.width, args.height)
-                _, _, info = rasterize(**scene, viewmat=viewmat, K=K, width=args.width, height=args.height)
+                img, alpha = renderers["ours"](scene, viewmat, K, args.width, args.height)
+                _, _, info = rasterize(**scene, viewmat=viewmat, K=K, width=args.width, height=args.height,
+                                       **ours_options)
                 row["intersections"] = int(info["n_intersections"])
                 row["visible"] = int((info["radii"][:, 0] > 0).sum())
                 if have_gsplat:
@@ -188,7 +192,8 @@ def main():
                      f" {r['fwdbwd_ratio']:.2f} | {r['max_image_diff']:.1e} |")
         lines.append(line)
     device_name = torch.cuda.get_device_name() if device == "cuda" else "cpu"
-    table = f"{device_name}, {args.width}×{args.height}, median of {args.runs} runs\n\n" + "\n".join(lines)
+    table = (f"{device_name}, {args.width}×{args.height}, median of {args.runs} runs, ours with "
+             f"{args.options or 'default options'}\n\n" + "\n".join(lines))
     print(table)
     if args.out:
         os.makedirs(args.out, exist_ok=True)
