@@ -9,7 +9,6 @@ from .scaffold import (
     anchor_ply_properties,
     load_scaffold,
     load_weights,
-    read_torchscript_tensors,
     save_scaffold,
 )
 
@@ -27,6 +26,5 @@ __all__ = [
     "load_scaffold",
     "load_weights",
     "read_3dgs_ply",
-    "read_torchscript_tensors",
     "save_scaffold",
 ]

@@ -13,16 +13,13 @@
 The MLPs are ``opacity_mlp.pt``, ``cov_mlp.pt``, ``color_mlp.pt`` and, when used,
 ``feature_bank_mlp.pt`` and ``embedding_appearance.pt``. Scaffold-GS writes them with
 ``torch.jit.trace(...).save()``; loading those with ``torch.jit.load`` would execute code from the
-file. We write plain state dicts (``torch.save(state_dict)``) and read files in one of two safe ways:
-``torch.load(weights_only=True)`` for state dicts, and for TorchScript archives a restricted
-unpickler that only rebuilds tensors from the archive's storages and never runs the archive's code.
-Everything else in a file (any other pickled global) is refused.
+file. We write plain state dicts (``torch.save(state_dict)``) and read them only with
+``torch.load(weights_only=True)``; TorchScript archives are refused with the one-line conversion.
 """
 
 from __future__ import annotations
 
 import os
-import pickle
 import zipfile
 from pathlib import Path
 
@@ -44,6 +41,8 @@ MLP_FILES = {
 }
 """ScaffoldHeads attribute -> file name beside point_cloud.ply."""
 _REQUIRED_MLPS = ("opacity_mlp", "cov_mlp", "color_mlp")
+# What torch.load(weights_only=True) raises for a file holding anything but tensors.
+_UNPICKLING_ERRORS = (torch.serialization.pickle.UnpicklingError,)
 
 
 class MlpFileError(ValueError):
@@ -232,16 +231,22 @@ def _load_into(module: nn.Module, state: dict[str, torch.Tensor], path: Path, d:
 def load_weights(path: str | os.PathLike, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
     """The named tensors of a weights file, read without running any code from it.
 
-    Accepts a ``torch.save``-d dict of tensors (read with ``torch.load(weights_only=True)``) or a
-    TorchScript archive (``torch.jit.save``; its parameters and buffers, named as in the module's
-    ``state_dict``, are read by :func:`read_torchscript_tensors`).
+    Accepts a ``torch.save``-d dict of tensors, read with ``torch.load(weights_only=True)``. A
+    TorchScript archive (how the original Scaffold-GS saves its MLPs) is refused: its tensors can
+    only be reached by unpickling the archive, and no file is ever unpickled here. The error says
+    how to convert it once, where the file is trusted.
     """
     path = Path(path)
     if _is_torchscript_archive(path):
-        return {key: value.to(device) for key, value in read_torchscript_tensors(path).items()}
+        raise MlpFileError(
+            path,
+            "is a TorchScript archive (the original Scaffold-GS saves MLPs with torch.jit); reading it would "
+            "mean unpickling the file, which securegs never does. Convert it once where you trust it: "
+            f"python -c \"import torch; torch.save(torch.jit.load('{path}').state_dict(), '{path}')\"",
+        )
     try:
         state = torch.load(path, weights_only=True, map_location=device)
-    except pickle.UnpicklingError as e:
+    except _UNPICKLING_ERRORS as e:
         raise MlpFileError(
             path,
             f"refused by torch.load(weights_only=True): it is not plain tensors, and unpickling it could "
@@ -263,99 +268,3 @@ def _is_torchscript_archive(path: Path) -> bool:
         return any(name.endswith("/constants.pkl") for name in archive.namelist())
 
 
-_STORAGE_DTYPES = {
-    "FloatStorage": torch.float32, "DoubleStorage": torch.float64, "HalfStorage": torch.float16,
-    "BFloat16Storage": torch.bfloat16, "LongStorage": torch.int64, "IntStorage": torch.int32,
-    "ShortStorage": torch.int16, "CharStorage": torch.int8, "ByteStorage": torch.uint8,
-    "BoolStorage": torch.bool,
-}
-
-
-class _ScriptObject:
-    """Stand-in for a TorchScript class instance (``__torch__.*``): it only records its attributes."""
-
-    qualified_name = ""
-
-    def __new__(cls, *args):
-        obj = super().__new__(cls)
-        obj.attributes = {}
-        return obj
-
-    def __setstate__(self, state) -> None:
-        if isinstance(state, dict):
-            self.attributes = state
-
-
-def _rebuild_tensor(storage: torch.Tensor, offset: int, size, stride, requires_grad=False, hooks=None) -> torch.Tensor:
-    """Safe stand-in for ``torch._utils._rebuild_tensor_v2`` (as_strided checks the bounds)."""
-    return storage.as_strided(tuple(size), tuple(stride), offset).clone()
-
-
-class _TorchScriptUnpickler(pickle.Unpickler):
-    """Unpickles a TorchScript ``data.pkl`` allowing nothing but tensor reconstruction.
-
-    Module objects become :class:`_ScriptObject` records; tensors are rebuilt from the archive's raw
-    storages; any other global (a function or class that could run code) is refused.
-    """
-
-    def __init__(self, file, archive: zipfile.ZipFile, prefix: str):
-        super().__init__(file)
-        self.archive, self.prefix = archive, prefix
-
-    def find_class(self, module: str, name: str):
-        if module == "torch._utils" and name == "_rebuild_tensor_v2":
-            return _rebuild_tensor
-        if module == "collections" and name == "OrderedDict":
-            return dict  # the (always empty) backward-hooks argument of _rebuild_tensor_v2
-        if module == "torch" and name in _STORAGE_DTYPES:
-            return _STORAGE_DTYPES[name]
-        if module == "__torch__" or module.startswith("__torch__."):
-            return type(f"{module}.{name}", (_ScriptObject,), {"qualified_name": f"{module}.{name}"})
-        raise pickle.UnpicklingError(f"global '{module}.{name}' is not allowed")
-
-    def persistent_load(self, pid):
-        if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage" and isinstance(pid[1], torch.dtype)):
-            raise pickle.UnpicklingError(f"unexpected persistent id {pid!r}")
-        _, dtype, key, _location, numel = pid
-        raw = self.archive.read(f"{self.prefix}data/{key}")
-        nbytes = numel * torch.empty((), dtype=dtype).element_size()
-        if len(raw) < nbytes:
-            raise pickle.UnpicklingError(f"storage {key} holds {len(raw)} bytes, expected {nbytes}")
-        return torch.frombuffer(bytearray(raw[:nbytes]), dtype=dtype)
-
-
-def read_torchscript_tensors(path: str | os.PathLike) -> dict[str, torch.Tensor]:
-    """Parameters and buffers of a TorchScript archive as a flat state dict, without running its code.
-
-    Reads the archive's ``data.pkl`` (the pickled module tree) with a restricted unpickler and names
-    each tensor attribute by its path through submodules (``0.weight``, ``embedding.weight``), as
-    ``state_dict()`` does. Raises :class:`MlpFileError` on anything unexpected.
-    """
-    path = Path(path)
-    with zipfile.ZipFile(path) as archive:
-        names = archive.namelist()
-        data_pkl = next((n for n in names if n.count("/") == 1 and n.endswith("/data.pkl")), None)
-        if data_pkl is None:
-            raise MlpFileError(path, "TorchScript archive without a top-level data.pkl")
-        prefix = data_pkl[: -len("data.pkl")]
-        # Archives older than the byteorder record are little-endian.
-        if prefix + "byteorder" in names and archive.read(prefix + "byteorder") != b"little":
-            raise MlpFileError(path, "TorchScript archive is not little-endian")
-        try:
-            with archive.open(data_pkl) as f:
-                root = _TorchScriptUnpickler(f, archive, prefix).load()
-        except (pickle.UnpicklingError, ValueError, TypeError, KeyError, EOFError, RuntimeError) as e:
-            raise MlpFileError(path, f"refused: cannot read the TorchScript archive's tensors safely ({e})") from e
-    if not isinstance(root, _ScriptObject):
-        raise MlpFileError(path, "TorchScript archive's data.pkl does not hold a module")
-    tensors: dict[str, torch.Tensor] = {}
-    _collect_tensors(root, "", tensors)
-    return tensors
-
-
-def _collect_tensors(obj: _ScriptObject, prefix: str, out: dict[str, torch.Tensor]) -> None:
-    for name, value in obj.attributes.items():
-        if torch.is_tensor(value):
-            out[prefix + name] = value
-        elif isinstance(value, _ScriptObject):
-            _collect_tensors(value, f"{prefix}{name}.", out)
