@@ -130,20 +130,10 @@ def _finish_scaffold(trainer, run: RunFolder, save_scaffold) -> None:
 
 def evaluate_trainer(trainer, run: RunFolder) -> dict:
     """Held-out metrics and FPS of the public render; writes the held-out renders as PNGs."""
-    from .evaluation import image_metrics
-    from .train import render_fps
-
     cams = trainer.scene.test or trainer.scene.train
-    with torch.no_grad():
-        renders = [trainer.render(c)["image"].clamp(0, 1) for c in cams]
-    for cam, image in zip(cams, renders):
-        save_png(run.renders / f"{cam.name}.png", image)
-    targets = [torch.as_tensor(c.image, device=trainer.device) for c in cams]
-    metrics = image_metrics(zip(renders, targets), trainer.device)
-    with torch.no_grad():
-        metrics["fps"] = render_fps(trainer.render, cams, trainer.device)
-    metrics.update(views=len(cams), anchors=trainer.model.num_anchors, device=str(trainer.device))
-    return metrics
+    metrics = trainer.evaluate(cams, with_lpips=True,
+                               on_render=lambda cam, image: save_png(run.renders / f"{cam.name}.png", image))
+    return {**metrics, "device": str(trainer.device)}
 
 
 def _print_metrics(metrics: dict) -> None:

@@ -1,6 +1,11 @@
 """Scenes for the rasterizer tests and the comparison of ``rasterize`` with the float64 reference."""
 import dataclasses
+import json
 import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -122,3 +127,26 @@ def assert_matches_reference(scene: Scene, image_tol=IMAGE_TOL, grad_tol=GRAD_TO
         assert err <= grad_tol, (f"gradient of {name}: relative error {err:.3g} > {grad_tol} "
                                  f"(worst entry {worst}: {g.flatten()[worst]:.6g} vs {gr.flatten()[worst]:.6g})")
     return ours, ref
+
+
+def error_row(ours: dict, ref: dict) -> dict:
+    """Max image and alpha errors and each input's relative gradient error, as plain floats."""
+    row = {key: float((ours[key] - ref[key]).abs().max()) for key in ("image", "alpha")}
+    row.update({name: relative_error(ours["grad_" + name], ref["grad_" + name]) for name in DIFF_INPUTS})
+    return row
+
+
+def run_with_cpu_blocks(body: str, timeout: int = 600):
+    """Run test code in a fresh process with ``wp.config.enable_cpu_blocks`` (a global flag), so the
+    cooperative CUDA code path runs on the CPU with real multi-thread blocks.
+
+    ``body`` can import the test modules and must ``print("RESULT" + json.dumps(...))``; the
+    decoded object is returned.
+    """
+    preamble = ("import json, sys\nimport torch\nimport warp as wp\nwp.config.quiet = True\n"
+                "wp.config.enable_cpu_blocks = True\nsys.path.insert(0, sys.argv[1])\n")
+    code = preamble + textwrap.dedent(body)
+    proc = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent)], capture_output=True, text=True,
+                          timeout=timeout)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.split("RESULT", 1)[1])

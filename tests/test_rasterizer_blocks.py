@@ -5,22 +5,10 @@ block reductions are trivial there. With ``wp.config.enable_cpu_blocks`` it runs
 many threads; this test renders with several block shapes in a fresh process (the flag is global)
 and checks every result against the float64 reference.
 """
-import json
-import subprocess
-import sys
-import textwrap
-from pathlib import Path
+from raster_cases import DIFF_INPUTS, run_with_cpu_blocks
 
-import pytest
-
-SCRIPT = textwrap.dedent("""
-    import json, sys
-    import torch
-    import warp as wp
-    wp.config.quiet = True
-    wp.config.enable_cpu_blocks = True
-    sys.path.insert(0, sys.argv[1])
-    from raster_cases import random_scene, render_both, relative_error, DIFF_INPUTS
+SCRIPT = """
+    from raster_cases import error_row, random_scene, render_both
     from test_rasterizer import _scene, _aniso
 
     def layers():
@@ -35,22 +23,15 @@ SCRIPT = textwrap.dedent("""
         for name, scene in [("random", random_scene(30, n=70, width=37, height=29)), ("layers", layers())]:
             scene.kwargs.update(forward_block=blocks[0], backward_block=blocks[1])
             ours, ref = render_both(scene)
-            row = {"blocks": blocks, "scene": name,
-                   "image": float((ours["image"] - ref["image"]).abs().max()),
-                   "alpha": float((ours["alpha"] - ref["alpha"]).abs().max())}
-            row.update({n: relative_error(ours["grad_" + n], ref["grad_" + n]) for n in DIFF_INPUTS})
-            out.append(row)
+            out.append({"blocks": blocks, "scene": name, **error_row(ours, ref)})
     print("RESULT" + json.dumps(out))
-""")
+"""
 
 
 def test_multithreaded_blocks_match_reference():
-    tests_dir = str(Path(__file__).parent)
-    proc = subprocess.run([sys.executable, "-c", SCRIPT, tests_dir], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    rows = json.loads(proc.stdout.split("RESULT", 1)[1])
+    rows = run_with_cpu_blocks(SCRIPT)
     assert len(rows) == 6
     for row in rows:
         assert row["image"] <= 1e-4 and row["alpha"] <= 1e-4, row
-        for name in ("means", "quats", "scales", "opacities", "colors", "background"):
+        for name in DIFF_INPUTS:
             assert row[name] <= 1e-3, (name, row)

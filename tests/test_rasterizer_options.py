@@ -3,17 +3,12 @@
 Each variant is checked against the float64 reference with a tolerance that states its expected
 error, and with its effect neutral against the general kernels.
 """
-import json
-import subprocess
-import sys
-import textwrap
-from pathlib import Path
-
 import pytest
 import torch
 
-from raster_cases import (DIFF_INPUTS, GRAD_TOL, IMAGE_TOL, assert_matches_reference, random_scene, relative_error,
-                          render_both)
+from raster_cases import (
+    DIFF_INPUTS, GRAD_TOL, IMAGE_TOL, assert_matches_reference, random_scene, relative_error, render_both, run_with_cpu_blocks,
+)
 from securegs_warp import rasterize
 from securegs_warp.kernels.blend import batch_size, blend_kernels
 from securegs_warp.kernels.projection import projection_kernel
@@ -93,32 +88,22 @@ def test_float16_batches_twice_the_wide_gaussians():
 
 # The cooperative (CUDA) code path gathers the float16 colours into shared memory; run it on the
 # CPU with real multi-thread blocks in a fresh process (enable_cpu_blocks is global).
-COOPERATIVE = textwrap.dedent("""
-    import json, sys
-    import torch
-    import warp as wp
-    wp.config.quiet = True
-    wp.config.enable_cpu_blocks = True
-    sys.path.insert(0, sys.argv[1])
-    from raster_cases import random_scene, render_both, relative_error, DIFF_INPUTS
+COOPERATIVE = """
+    from raster_cases import error_row, random_scene, render_both
     from test_rasterizer_options import float16_rounding, render_with_grads
 
     scene = random_scene(4, n=70, channels=3, width=37, height=29, color_storage="float16")
     ours, ref = render_both(scene)
-    row = {"image": float((ours["image"] - ref["image"]).abs().max()), "bound": float16_rounding(scene.colors)}
-    row.update({n: relative_error(ours["grad_" + n], ref["grad_" + n]) for n in DIFF_INPUTS})
+    row = {**error_row(ours, ref), "bound": float16_rounding(scene.colors)}
     scene.colors = torch.round(scene.colors * 256) / 256
     general = render_with_grads(scene)
     row["identical"] = all(torch.equal(a, b) for a, b in zip(general, render_with_grads(scene, color_storage="float16")))
     print("RESULT" + json.dumps(row))
-""")
+"""
 
 
 def test_float16_cooperative_blocks():
-    tests_dir = str(Path(__file__).parent)
-    proc = subprocess.run([sys.executable, "-c", COOPERATIVE, tests_dir], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    row = json.loads(proc.stdout.split("RESULT", 1)[1])
+    row = run_with_cpu_blocks(COOPERATIVE)
     assert row["identical"], row
     assert row["image"] <= row["bound"] + IMAGE_TOL, row
     for name in DIFF_INPUTS:

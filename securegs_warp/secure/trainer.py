@@ -12,7 +12,8 @@ import torch
 import torch.nn.functional as F
 
 from ..data import Camera, SceneData
-from ..train.losses import psnr, ssim
+from .. import evaluation
+from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer, TrainConfig
 from .heads import PrivateHeads
 from .payload import BIT_WEIGHT, PayloadSpec, build_payload
@@ -88,8 +89,8 @@ class SecureTrainer(ScaffoldTrainer):
         else:
             pairs = []
         if pairs:
-            out["psnr_hidden"] = sum(psnr(a, b) for a, b in pairs) / len(pairs)
-            out["ssim_hidden"] = sum(float(ssim(a, b)) for a, b in pairs) / len(pairs)
+            metrics = evaluation.image_metrics(pairs, self.device, with_lpips=False)
+            out["psnr_hidden"], out["ssim_hidden"] = metrics["psnr"], metrics["ssim"]
             cams = self.scene.test or self.scene.train
             out["fps_hidden"] = render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:

@@ -12,14 +12,14 @@ import dataclasses
 import io
 import time
 
-import numpy as np
 import torch
 
 from ..data import Camera, SceneData
+from .. import evaluation  # module import: evaluation itself imports train.losses
 from ..io.atomic import atomic_write
 from ..model import ANCHOR_PARAM_NAMES, AnchorModel, ScaffoldHeads, anchor_param_groups
 from ..render import render_view
-from .losses import photometric_loss, psnr, ssim, volume_loss
+from .losses import photometric_loss, psnr, volume_loss
 from .schedules import exponential_lr
 from .strategy import ScaffoldStrategy
 
@@ -191,19 +191,21 @@ class ScaffoldTrainer:
         return loss, None, {}
 
     @torch.no_grad()
-    def evaluate(self, cameras: list[Camera] | None = None, timing_repeats: int = 3) -> dict:
-        """PSNR, SSIM on held-out views (the test split by default), and rendering FPS."""
+    def evaluate(self, cameras: list[Camera] | None = None, timing_repeats: int = 3, with_lpips: bool = False,
+                 on_render=None) -> dict:
+        """PSNR, SSIM (and LPIPS when asked and possible) on held-out views (the test split by
+        default), and rendering FPS. ``on_render(cam, image [H, W, 3])`` sees each render (to save it)."""
         cameras = self.scene.test if cameras is None else cameras
         if not cameras:
             raise ValueError("no held-out views to evaluate on")
-        psnrs, ssims = [], []
+        pairs = []
         for cam in cameras:
             image = self.render(cam)["image"].clamp(0, 1)
-            target = torch.as_tensor(cam.image, device=self.device)
-            psnrs.append(psnr(image, target))
-            ssims.append(float(ssim(image, target)))
-        return {"psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)),
-                "fps": render_fps(self.render, cameras, self.device, timing_repeats),
+            if on_render is not None:
+                on_render(cam, image)
+            pairs.append((image, torch.as_tensor(cam.image, device=self.device)))
+        metrics = evaluation.image_metrics(pairs, self.device, with_lpips=with_lpips)
+        return {**metrics, "fps": render_fps(self.render, cameras, self.device, timing_repeats),
                 "anchors": self.model.num_anchors, "views": len(cameras)}
 
     # -- checkpoints ----------------------------------------------------------------------------
