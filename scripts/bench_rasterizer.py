@@ -158,7 +158,7 @@ def main():
                 renderers["gsplat"] = gsplat_render
             row = {"scene": kind, "n": n, "width": args.width, "height": args.height}
             for name, fn in renderers.items():
-                call = lambda fn=fn: fn(scene, viewmat, K, args.width, args.height)  # noqa: E731
+                call = lambda fn=fn, scene=scene: fn(scene, viewmat, K, args.width, args.height)  # noqa: E731
                 with torch.no_grad():
                     row[f"{name}_fwd_ms"] = timed(call, False, device, args.warmup, args.runs, grads)
                 row[f"{name}_fwdbwd_ms"] = timed(call, True, device, args.warmup, args.runs, grads)

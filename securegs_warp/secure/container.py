@@ -9,8 +9,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import torch
-
 from ..io import load_scaffold, save_scaffold
 from ..keys import container_fingerprint, load_key, save_key
 from ..model import AnchorModel, ScaffoldHeads
