@@ -8,6 +8,11 @@ the hidden object's shape each anchor cloud shows; draws the anchor clouds side 
 
     python scripts/secure_vs_baseline.py --out runs/secure_vs_baseline               # CPU default
     python scripts/secure_vs_baseline.py --width 1920 --height 1080 --iterations 3000 # GPU
+    python scripts/secure_vs_baseline.py --modes rdo,rdo:lambda=1,rdo:fixed-scaling  # what costs fidelity
+
+A variant is ``MODE[:lambda=X][:fixed-scaling]``: the density mode (or no-hdger), λ overriding the
+payload's default, and ``fixed-scaling`` to keep ℓ_hid from moving the public anchor scalings l_v
+(``SecureTrainer(hidden_scaling_grad=False)``).
 """
 import argparse
 import json
@@ -36,6 +41,23 @@ def train(trainer, label):
     return trainer
 
 
+def parse_variant(text: str) -> tuple[str, dict]:
+    """``MODE[:lambda=X][:fixed-scaling]`` -> (row label, SecureTrainer keyword arguments)."""
+    mode, *opts = text.split(":")
+    kwargs = {"mode": "rdo" if mode == "no-hdger" else mode, "hdger": mode != "no-hdger"}
+    notes = [] if mode == "rdo" else [mode]
+    for opt in opts:
+        if opt.startswith("lambda="):
+            kwargs["hidden_weight"] = float(opt.removeprefix("lambda="))
+            notes.append(f"λ={kwargs['hidden_weight']:g}")
+        elif opt == "fixed-scaling":
+            kwargs["hidden_scaling_grad"] = False
+            notes.append("l_v public only")
+        else:
+            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, fixed-scaling)")
+    return ("SecureGS" + (f" ({', '.join(notes)})" if notes else "")), kwargs
+
+
 def release_mb(model) -> float:
     """Size in MB of the public release (point_cloud.ply + MLPs) of a trainer's model."""
     with tempfile.TemporaryDirectory() as d:
@@ -53,8 +75,8 @@ def main():
     ap.add_argument("--hide", default="mug")
     ap.add_argument("--payload", default="object+bits:48")
     ap.add_argument("--modes", default="rdo,scaffold",
-                    help="SecureGS variants: density modes rdo, scaffold (w/o RDO), global, shared; no-hdger "
-                         "(RDO with explicit hidden offsets)")
+                    help="SecureGS variants MODE[:lambda=X][:fixed-scaling]: density modes rdo, scaffold (w/o "
+                         "RDO), global, shared; no-hdger (RDO with explicit hidden offsets)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/secure_vs_baseline"))
     args = ap.parse_args()
@@ -77,11 +99,10 @@ def main():
                                     "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
     clouds["Scaffold-GS baseline"] = xyz
 
-    for mode in args.modes.split(","):
-        label = "SecureGS" if mode == "rdo" else f"SecureGS ({mode})"
-        hdger = mode != "no-hdger"
-        sec = train(SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device,
-                                  mode=mode if hdger else "rdo", hdger=hdger), label)
+    for variant in args.modes.split(","):
+        label, kwargs = parse_variant(variant)
+        sec = train(SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device, **kwargs),
+                    label)
         ev, hid = sec.evaluate(), sec.evaluate_hidden()
         cams = scene.test
 

@@ -188,3 +188,24 @@ def test_without_hdger_offsets_are_explicit_and_follow_growth(hidden_scene, tmp_
     assert moments["exp_avg"].shape == model.hidden_offsets.shape
     with pytest.raises(ValueError, match="HDGER"):
         save_container(tmp_path, model, trainer.heads, trainer.private, {})
+
+
+def test_hidden_branch_switches(hidden_scene):
+    """λ overrides the payload's default; with hidden_scaling_grad=False the hidden loss reaches the
+    anchor features but never the public anchor scalings l_v."""
+    config = TrainConfig(iterations=5, tile_size=8)
+    with pytest.raises(ValueError, match="hidden_weight"):
+        SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_weight=-1.0)
+    grads = {}
+    for scaling_grad in (True, False):
+        trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_weight=3.0,
+                                hidden_scaling_grad=scaling_grad)
+        assert trainer.payload.weight == 3.0
+        out = trainer.render_hidden(hidden_scene.train[0], camera_index=0)
+        trainer.image_loss(out, trainer.payload.views[0]).backward()
+        grads[scaling_grad] = (trainer.model.feat.grad, trainer.model.scaling.grad)
+    feat_grad, scaling_grad = grads[True]
+    assert feat_grad.abs().sum() > 0 and scaling_grad.abs().sum() > 0
+    feat_grad, scaling_grad = grads[False]
+    assert feat_grad.abs().sum() > 0
+    assert scaling_grad is None or scaling_grad.abs().sum() == 0

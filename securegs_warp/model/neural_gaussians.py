@@ -60,6 +60,7 @@ def generate_neural_gaussians(
     *,
     camera_index: int | None = None,
     offset_source: OffsetSource = stored_offsets,
+    scaling_grad: bool = True,
 ) -> dict[str, torch.Tensor]:
     """Decode the visible anchors into the Gaussians of one view, exactly as Scaffold-GS does.
 
@@ -76,6 +77,8 @@ def generate_neural_gaussians(
         visible_mask: [N] bool, the anchors to decode (see :func:`visible_anchor_mask`); None: all.
         camera_index: camera row of the heads' appearance embedding, when they have one.
         offset_source: where the Gaussians sit relative to their anchor; default the stored offsets.
+        scaling_grad: let this decoding's loss reach the anchor scalings l_v. SecureGS's hidden pass
+            may read l_v without moving it, so that only the public loss shapes the public file.
 
     Returns:
         dict with M kept Gaussians out of Nv * k decoded (Gaussian j of the i-th visible anchor is
@@ -107,6 +110,8 @@ def generate_neural_gaussians(
     ob_view = ob_view / ob_dist
     feat = heads.blend_features(model.feat[anchor_index], ob_view, ob_dist)
     scaling = torch.exp(model.scaling[anchor_index])
+    if not scaling_grad:
+        scaling = scaling.detach()
     inputs = AnchorViewInputs(anchor_index, xyz, feat, ob_view, ob_dist, scaling, model.offsets[anchor_index])
 
     neural_opacity, cov, color = heads(feat, ob_view, ob_dist, camera_index)

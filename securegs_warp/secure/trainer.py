@@ -21,14 +21,26 @@ from .strategy import RegionAwareStrategy
 
 
 class SecureTrainer(ScaffoldTrainer):
-    """``private``: the key's heads; ``payload``: the hidden targets."""
+    """``private``: the key's heads; ``payload``: the hidden targets.
+
+    hidden_weight: λ, overriding the payload's default (payload.HIDDEN_WEIGHT).
+    hidden_scaling_grad: let ℓ_hid move the anchor scalings l_v. They are public (stored in the
+        release) and scale the public offsets and Gaussians; with False only ℓ_ori shapes them and
+        the hidden branch reaches the public file through the anchor features alone.
+    """
 
     def __init__(self, scene: SceneData, config: TrainConfig, payload: PayloadSpec, device="cpu",
-                 mode: str = "rdo", hdger: bool = True):
+                 mode: str = "rdo", hdger: bool = True, hidden_weight: float | None = None,
+                 hidden_scaling_grad: bool = True):
         strategy = RegionAwareStrategy.for_iterations(config.iterations, mode=mode,
                                                       use_bbox=payload.kind in ("object", "image"))
         super().__init__(scene, config, device=device, strategy=strategy)
         self.payload = build_payload(payload, scene, self.device)
+        if hidden_weight is not None:
+            if not hidden_weight >= 0.0:
+                raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
+            self.payload.weight = float(hidden_weight)
+        self.hidden_scaling_grad = hidden_scaling_grad
         self.private = PrivateHeads(self.heads, bits=payload.bits, offsets=hdger,
                                     hidden=self.payload.has_images).to(self.device)
         if self.private.decoder is not None and not hdger:
@@ -50,7 +62,8 @@ class SecureTrainer(ScaffoldTrainer):
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = self.private.hidden_offsets if self.private.offset_mlp is not None else self._explicit_offsets
         return self.render_branch(cam, self.private.decoder, self.payload.background, camera_index,
-                                  offset_source=source, **raster_options)
+                                  offset_source=source, scaling_grad=self.hidden_scaling_grad,
+                                  **raster_options)
 
     def _explicit_offsets(self, inputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
