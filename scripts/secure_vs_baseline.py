@@ -10,6 +10,8 @@ the hidden object's shape each anchor cloud shows; draws the anchor clouds side 
     python scripts/secure_vs_baseline.py --width 1920 --height 1080 --iterations 3000 # GPU
     python scripts/secure_vs_baseline.py --modes rdo,rdo:lambda=1,rdo:fixed-scaling  # what costs fidelity
 
+The anchor-cloud PNG needs matplotlib (``pip install -e ".[plots]"``).
+
 A variant is ``MODE[:lambda=X][:fixed-scaling]``: the density mode (or no-hdger), λ overriding the
 payload's default, and ``fixed-scaling`` to keep ℓ_hid from moving the public anchor scalings l_v
 (``SecureTrainer(hidden_scaling_grad=False)``).
@@ -27,18 +29,43 @@ import warp as wp
 
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import save_scaffold
+from securegs_warp.io.atomic import atomic_write
 from securegs_warp.secure import PayloadSpec, SecureTrainer
 from securegs_warp.secure.security import exposure, plot_anchor_clouds
 from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
 
 
+COLUMNS = ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
+           "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
+
+
 def train(trainer, label):
+    """Run the trainer's whole budget; returns the number of steps that had a non-finite gradient
+    (zeroed by the trainer, see train.trainer.zero_nonfinite_gradients)."""
     t0 = time.perf_counter()
-    for _ in range(trainer.config.iterations):
-        trainer.step()
+    nonfinite = sum("nonfinite_grads" in trainer.step() for _ in range(trainer.config.iterations))
     print(f"{label}: {trainer.config.iterations} steps in {time.perf_counter() - t0:.0f} s, "
-          f"{trainer.model.num_anchors} anchors", flush=True)
-    return trainer
+          f"{trainer.model.num_anchors} anchors, {nonfinite} steps with non-finite gradients", flush=True)
+    return nonfinite
+
+
+def markdown_row(label, r) -> str:
+    cells = [f"{r[c]:.4g}" if isinstance(r.get(c), float) else str(r.get(c, "–")) for c in COLUMNS]
+    e = r["exposure"]
+    return f"| {label} | " + " | ".join(cells) + f" | {e['surface_fraction']:.3f} | {e['coverage']:.3f} |"
+
+
+def write_report(out: Path, meta: dict, rows: dict) -> str:
+    """secure_vs_baseline.json and .md (atomically, after every model, so a later failure loses
+    nothing); returns the markdown table."""
+    lines = ["| model | " + " | ".join(COLUMNS) + " | surface fraction | coverage |",
+             "|---" * (len(COLUMNS) + 3) + "|"] + [markdown_row(label, r) for label, r in rows.items()]
+    table = (f"{meta['device']}, {meta['width']}×{meta['height']}, {meta['iterations']} iterations, hidden "
+             f"{meta['hidden']}, payload {meta['payload']}\n\n" + "\n".join(lines))
+    atomic_write(out / "secure_vs_baseline.json", lambda f: f.write(json.dumps({"meta": meta, "rows": rows},
+                                                                               indent=1).encode()))
+    atomic_write(out / "secure_vs_baseline.md", lambda f: f.write((table + "\n").encode()))
+    return table
 
 
 def parse_variant(text: str) -> tuple[str, dict]:
@@ -89,20 +116,26 @@ def main():
     config = TrainConfig(iterations=args.iterations, tile_size=tile)
     radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0)))
     rows, clouds = {}, {}
+    device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
+    meta = {"device": device, "date": time.strftime("%Y-%m-%d"), "width": args.width, "height": args.height,
+            "iterations": args.iterations, "hidden": args.hide, "payload": args.payload, "exposure_radius": radius}
 
-    base = train(ScaffoldTrainer(scene, config, device=args.device), "baseline")
+    base = ScaffoldTrainer(scene, config, device=args.device)
+    nonfinite = train(base, "baseline")
     ev = base.evaluate()
     xyz = base.model.xyz.detach().cpu().numpy()
     rows["Scaffold-GS baseline"] = {"psnr_public": ev["psnr"], "ssim_public": ev["ssim"], "fps_public": ev["fps"],
                                     "size_mb": release_mb(base), "anchors": ev["anchors"],
-                                    "train_seconds": base.train_seconds,
+                                    "train_seconds": base.train_seconds, "nonfinite_steps": nonfinite,
                                     "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
     clouds["Scaffold-GS baseline"] = xyz
+    print(markdown_row("Scaffold-GS baseline", rows["Scaffold-GS baseline"]), flush=True)
+    write_report(out, meta, rows)
 
     for variant in args.modes.split(","):
         label, kwargs = parse_variant(variant)
-        sec = train(SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device, **kwargs),
-                    label)
+        sec = SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device, **kwargs)
+        nonfinite = train(sec, label)
         ev, hid = sec.evaluate(), sec.evaluate_hidden()
         cams = scene.test
 
@@ -116,27 +149,14 @@ def main():
                        "fps_public_and_hidden": fps_both, "psnr_hidden": hid.get("psnr_hidden"),
                        "ssim_hidden": hid.get("ssim_hidden"), "bit_accuracy": hid.get("bit_accuracy"),
                        "size_mb": release_mb(sec), "anchors": ev["anchors"], "train_seconds": sec.train_seconds,
-                       "hidden_anchors": int(sec.strategy_state["is_hidden"].sum()),
+                       "hidden_anchors": int(sec.strategy_state["is_hidden"].sum()), "nonfinite_steps": nonfinite,
                        "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
         clouds[label] = xyz
+        print(markdown_row(label, rows[label]), flush=True)
+        write_report(out, meta, rows)
 
     plot_anchor_clouds(out / "anchor_clouds.png", clouds, scene.hidden_points)
-    device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
-    meta = {"device": device, "date": time.strftime("%Y-%m-%d"), "width": args.width, "height": args.height,
-            "iterations": args.iterations, "hidden": args.hide, "payload": args.payload, "exposure_radius": radius}
-    (out / "secure_vs_baseline.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    cols = ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
-            "fps_public_and_hidden", "size_mb", "anchors", "train_seconds")
-    lines = ["| model | " + " | ".join(cols) + " | surface fraction | coverage |",
-             "|---" * (len(cols) + 3) + "|"]
-    for label, r in rows.items():
-        cells = [f"{r[c]:.4g}" if isinstance(r.get(c), float) else str(r.get(c, "–")) for c in cols]
-        e = r["exposure"]
-        lines.append(f"| {label} | " + " | ".join(cells) + f" | {e['surface_fraction']:.3f} | {e['coverage']:.3f} |")
-    table = (f"{device}, {args.width}×{args.height}, {args.iterations} iterations, hidden {args.hide}, "
-             f"payload {args.payload}\n\n" + "\n".join(lines))
-    (out / "secure_vs_baseline.md").write_text(table + "\n")
-    print(table)
+    print(write_report(out, meta, rows))
 
 
 if __name__ == "__main__":

@@ -104,7 +104,7 @@ def train_loop(trainer, run: RunFolder, args, finish) -> int:
             bar.update(1)
             bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", anchors=stats["anchors"])
             step = trainer.step_count
-            if step % args.log_every == 0 or step == total or "grown" in stats:
+            if step % args.log_every == 0 or step == total or "grown" in stats or "nonfinite_grads" in stats:
                 run.append_log({"step": step, "seconds": round(trainer.train_seconds, 2), **stats})
             if step % args.checkpoint_every == 0:
                 trainer.save_checkpoint(run.checkpoint)

@@ -141,3 +141,23 @@ def test_cli_reports_bad_scene(tmp_path, capsys):
 def test_render_matches_camera(tiny_scene):
     viewmat, K = camera_tensors(tiny_scene.train[0], "cpu")
     assert viewmat.shape == (4, 4) and K.shape == (3, 3)
+
+
+def test_nonfinite_gradients_cost_one_update_not_the_model(tiny_scene):
+    """An inf or NaN gradient entry (injected here with hooks) is zeroed and reported; without that,
+    Adam turns an anchor trained at learning rate 0 (its position) into NaN."""
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, tile_size=8, densify=False))
+    trainer.step()  # Adam has moments for every parameter
+    poison = {"xyz": float("inf"), "feat": float("nan")}
+    for name, value in poison.items():
+        def inject(grad, value=value):
+            grad = grad.clone()
+            grad[0] = value
+            return grad
+        getattr(trainer.model, name).register_hook(inject)
+    stats = trainer.step()
+    d = trainer.model.feat_dim
+    assert stats["nonfinite_grads"] == 3 + d
+    for name in ("xyz", "feat", "offsets", "scaling"):
+        assert torch.isfinite(getattr(trainer.model, name)).all(), name
+    assert "nonfinite_grads" not in ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, tile_size=8)).step()

@@ -24,6 +24,11 @@ def hidden_only_surface(hidden_points: np.ndarray, scene_points: np.ndarray, rad
 
 
 def exposure(anchors: np.ndarray, hidden_points: np.ndarray, scene_points: np.ndarray, radius: float) -> dict:
+    """The measures above for anchor positions [N, 3] against the hidden object's surface samples
+    [M, 3] and the scene's points [P, 3]."""
+    bad = int((~np.isfinite(anchors)).any(axis=1).sum())
+    if bad:
+        raise ValueError(f"{bad} of {len(anchors)} anchors have non-finite positions: the model is corrupt")
     surface = hidden_only_surface(hidden_points, scene_points, radius)
     lo, hi = hidden_points.min(0) - radius, hidden_points.max(0) + radius
     in_box = anchors[((anchors >= lo) & (anchors <= hi)).all(axis=1)]

@@ -173,6 +173,9 @@ class ScaffoldTrainer:
         target = self._targets[index]
         loss, hidden, extra = self.extra_losses(index, self.image_loss(out, target))
         loss.backward()
+        nonfinite = zero_nonfinite_gradients(self.optimizer)
+        if nonfinite:
+            extra = {**extra, "nonfinite_grads": nonfinite}
         changed = {}
         if self.config.densify:
             changed = self.strategy.step_post_backward(self.model, self.optimizer, self.strategy_state,
@@ -252,6 +255,25 @@ class ScaffoldTrainer:
         self._order = list(state["order"])
         self.step_count = int(state["step"])
         self.train_seconds = float(state["train_seconds"])
+
+
+@torch.no_grad()
+def zero_nonfinite_gradients(optimizer: torch.optim.Optimizer) -> int:
+    """Set the inf/NaN entries of every gradient the optimizer holds to zero; return their count.
+
+    Why: parameters kept at learning rate 0 (anchor positions, as in Scaffold-GS) still pass through
+    Adam, whose update 0 · m/√v is NaN once one gradient entry is inf or NaN. Such an anchor would
+    become NaN for good, drop out of every view and never be pruned. Seen on an H100 (2026-11-22,
+    SecureGS λ=3, 960×540): one bad Gaussian must cost its own update, not the model. One host sync.
+    """
+    grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+    if not grads:
+        return 0
+    count = int(torch.stack([(~torch.isfinite(g)).sum() for g in grads]).sum())
+    if count:
+        for g in grads:
+            torch.nan_to_num_(g, nan=0.0, posinf=0.0, neginf=0.0)
+    return count
 
 
 def render_fps(render, cameras, device, repeats: int = 3) -> float:
