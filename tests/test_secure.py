@@ -209,3 +209,30 @@ def test_hidden_branch_switches(hidden_scene):
     feat_grad, scaling_grad = grads[False]
     assert feat_grad.abs().sum() > 0
     assert scaling_grad is None or scaling_grad.abs().sum() == 0
+
+
+@pytest.mark.parametrize("growth_at", ["hidden", "public"])
+def test_hidden_anchors_grow_where_the_hidden_gaussians_are(hidden_scene, growth_at):
+    """Γ_hid growth proposes anchors at the hidden Gaussians' mean positions (∇_hid's own
+    statistics); with hidden_growth_at="public", at the public offsets' positions as before."""
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"))
+    model, state, strategy = trainer.model, trainer.strategy_state, trainer.strategy
+    strategy.hidden_growth_at = growth_at
+    voxel = model.voxel_size
+    target = model.xyz.detach().max(dim=0).values + 40 * voxel  # outside the scene: no public Gaussian near
+    rows = slice(0, 8 * model.n_offsets)  # eight anchors' Gaussians all saw the hidden one there
+    views = 100.0
+    state["hid_grad_denom"][rows] = views
+    state["hid_grad_accum"][rows] = views  # mean gradient 1 ≫ τ_fix
+    state["hid_pos_accum"][rows] = views * target
+    n_before = model.num_anchors
+    grown = strategy.grow(model, trainer.optimizer, state, prefix="hid_", threshold=strategy.grad_threshold,
+                          generator=trainer.generator, positions=strategy.hidden_positions(model, state))
+    assert model.num_anchors == n_before + grown
+    distance = (model.xyz.detach()[n_before:] - target).norm(dim=1)
+    if growth_at == "hidden":  # quantised to the coarsest growth cell (16 voxels): within half its diagonal
+        assert grown > 0 and float(distance.max()) <= 8 * voxel * 3 ** 0.5 + 1e-6
+    else:  # the public Gaussians still sit on their anchors (zero offsets): nothing may appear out there
+        assert grown == 0 or float(distance.min()) > 20 * voxel
+    assert state["hid_pos_accum"].shape == (model.num_anchors * model.n_offsets, 3)
+    assert float(state["hid_pos_accum"][rows].abs().sum()) == 0.0  # reset with the gradient statistics

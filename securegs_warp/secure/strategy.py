@@ -2,7 +2,10 @@
 
 Two sets of gradient statistics: ∇_ori from the public render every step, ∇_hid from the hidden
 render every ``hidden_every`` steps (accumulating it more slowly holds back the growth of anchors
-that serve only the hidden object). Anchors grown from ∇_hid form Γ_hid; DBSCAN over Γ_hid gives
+that serve only the hidden object). Anchors grown from ∇_hid form Γ_hid; they are placed where the
+hidden Gaussians were seen (the mean of each one's positions over the views that counted in ∇_hid;
+F_o† places them view by view), so Γ_hid follows the hidden object as the paper's figure of the
+∇_hid anchor cloud shows (``hidden_growth_at="public"``: at the public offsets' positions instead); DBSCAN over Γ_hid gives
 the bounding box of the dense hidden region, inside which the public growth threshold drops to
 τ_fix / r_down, so public anchors multiply there and cover the hidden ones. Γ_hid grows at τ_fix;
 pruning (by opacity, from both branches) runs over Γ_ori ∪ Γ_hid.
@@ -34,16 +37,20 @@ class RegionAwareStrategy(ScaffoldStrategy):
     use_bbox: bool = True  # False for a whole hidden scene: a box around it would be the whole scene
     dbscan_eps_voxels: float = 12.0  # DBSCAN radius in base voxels
     dbscan_min_samples: int = 8
+    hidden_growth_at: str = "hidden"  # where Γ_hid anchors are placed: "hidden" or "public" positions
     anchor_state_keys = ScaffoldStrategy.anchor_state_keys + ("is_hidden",)
 
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"RDO mode must be one of {MODES}, got {self.mode!r}")
+        if self.hidden_growth_at not in ("hidden", "public"):
+            raise ValueError(f"hidden_growth_at must be 'hidden' or 'public', got {self.hidden_growth_at!r}")
 
     def initialize_state(self, model) -> dict[str, torch.Tensor]:
         state = super().initialize_state(model)
         state["hid_grad_accum"] = torch.zeros_like(state["grad_accum"])
         state["hid_grad_denom"] = torch.zeros_like(state["grad_denom"])
+        state["hid_pos_accum"] = torch.zeros(state["grad_denom"].shape[0], 3, device=model.xyz.device)  # Σ positions
         state["is_hidden"] = torch.zeros_like(state["anchor_denom"])  # 1: the anchor is in Γ_hid
         state["bbox"] = torch.full((6,), float("nan"), device=model.xyz.device)  # min xyz, max xyz
         return state
@@ -62,7 +69,8 @@ class RegionAwareStrategy(ScaffoldStrategy):
             if self.mode in ("scaffold", "shared"):  # one gradient for both branches, every step
                 self.accumulate(state, g_hid, info_hid, k, opacity=False)
             elif step % self.hidden_every == 0:  # ∇_hid, accumulated more slowly
-                self.accumulate(state, g_hid, info_hid, k, prefix="hid_", opacity=False)
+                rows, rendered = self.accumulate(state, g_hid, info_hid, k, prefix="hid_", opacity=False)
+                state["hid_pos_accum"][rows] += g_hid["means"].detach()[rendered]
         if step > self.update_from and step % self.update_interval == 0:
             return self.adjust(model, optimizer, state, generator)
         return {}
@@ -78,6 +86,18 @@ class RegionAwareStrategy(ScaffoldStrategy):
         tau = torch.full((model.num_anchors,), self.grad_threshold, device=model.xyz.device)
         tau[inside] = self.grad_threshold / self.r_down
         return tau.repeat_interleave(model.n_offsets)
+
+    def hidden_positions(self, model, state) -> torch.Tensor | None:
+        """[N, k, 3] where Γ_hid growth proposes anchors: each neural Gaussian's mean hidden
+        position over the views counted in ∇_hid (its public position where it has none), or
+        None for the public positions (``hidden_growth_at="public"``, or modes whose ∇_hid is the
+        shared gradient)."""
+        if self.hidden_growth_at == "public" or self.mode in ("scaffold", "shared"):
+            return None
+        denom = state["hid_grad_denom"][:, None]
+        public = model.gaussian_positions().reshape(-1, 3)
+        mean = torch.where(denom > 0, state["hid_pos_accum"] / denom.clamp_min(1.0), public)
+        return mean.view(model.num_anchors, model.n_offsets, 3)
 
     @torch.no_grad()
     def update_bbox(self, model, state) -> None:
@@ -107,7 +127,7 @@ class RegionAwareStrategy(ScaffoldStrategy):
         if self.mode != "scaffold":
             n_before = model.num_anchors
             grown_hid = self.grow(model, optimizer, state, prefix="hid_", threshold=self.grad_threshold,
-                                  generator=generator)
+                                  generator=generator, positions=self.hidden_positions(model, state))
             state["is_hidden"][n_before:] = 1.0
         pruned = self.prune(model, optimizer, state)
         return {"grown": grown_ori, "grown_hidden": grown_hid, "pruned": pruned,

@@ -62,12 +62,15 @@ class ScaffoldStrategy:
 
     @staticmethod
     @torch.no_grad()
-    def accumulate(state: dict, gaussians: dict, info: dict, k: int, prefix: str = "", opacity: bool = True) -> None:
+    def accumulate(state: dict, gaussians: dict, info: dict, k: int, prefix: str = "",
+                   opacity: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """Add one view's statistics (Scaffold-GS ``training_statis``).
 
         gaussians: the output of ``generate_neural_gaussians`` for the view; info: the matching
         ``rasterize`` info after backward. ``prefix`` selects a second set of gradient statistics
         (SecureGS keeps one per branch); ``opacity`` also counts the view in the opacity statistics.
+        Returns (rows [N·k] bool: the neural Gaussians counted, rendered [M] bool: which of the
+        view's M kept Gaussians they are), for statistics a subclass adds alongside.
         """
         visible = gaussians["visible_mask"]
         if opacity:
@@ -83,6 +86,7 @@ class ScaffoldStrategy:
         scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=rows.device)
         state[prefix + "grad_accum"][rows] += (info["means2d_grad"][rendered] * scale).norm(dim=1)
         state[prefix + "grad_denom"][rows] += 1
+        return rows, rendered
 
     # -- hooks ----------------------------------------------------------------------------------
 
@@ -106,22 +110,27 @@ class ScaffoldStrategy:
     # -- growing and pruning --------------------------------------------------------------------
 
     @torch.no_grad()
-    def grow(self, model, optimizer, state, prefix="", threshold=None, generator=None) -> int:
-        """Grow anchors from the gradient statistics under ``prefix``; returns the number added."""
+    def grow(self, model, optimizer, state, prefix="", threshold=None, generator=None, positions=None) -> int:
+        """Grow anchors from the gradient statistics under ``prefix``; returns the number added.
+
+        positions: [N, k, 3] where each neural Gaussian proposes its new anchor; default the
+        stored offsets' positions (``model.gaussian_positions()``), as Scaffold-GS.
+        """
         denom = state[prefix + "grad_denom"]
         grads = torch.nan_to_num(state[prefix + "grad_accum"] / denom, nan=0.0)
         seen = denom > self.update_interval * self.success_threshold * 0.5
         if model.voxel_size is None:
             raise ValueError("anchor growing needs the model's voxel_size (pass it when loading a model)")
         found = growth_candidates(
-            model.xyz, model.feat, model.gaussian_positions(), grads, seen,
+            model.xyz, model.feat, model.gaussian_positions() if positions is None else positions, grads, seen,
             self.growth_threshold(model, state) if threshold is None else threshold,
             model.voxel_size, update_depth=self.update_depth,
             update_hierachy_factor=self.update_hierachy_factor, update_init_factor=self.update_init_factor,
             generator=generator,
         )
-        state[prefix + "grad_accum"][seen] = 0.0
-        state[prefix + "grad_denom"][seen] = 0.0
+        for name in (prefix + "grad_accum", prefix + "grad_denom", prefix + "pos_accum"):
+            if name in state:
+                state[name][seen] = 0.0
         added = found.xyz.shape[0]
         if added:
             model.add_anchors(**found.anchor_rows(model.n_offsets), optimizer=optimizer)
@@ -140,7 +149,8 @@ class ScaffoldStrategy:
             k = model.n_offsets
             for name, value in state.items():
                 if _per_gaussian(name):
-                    state[name] = value.view(-1, k)[keep].reshape(-1)
+                    rest = value.shape[1:]
+                    state[name] = value.view(-1, k, *rest)[keep].reshape(-1, *rest)
                 elif name in self.anchor_state_keys:
                     state[name] = value[keep]
             model.prune_anchors(prune, optimizer)
@@ -155,9 +165,11 @@ class ScaffoldStrategy:
         """Zero statistics for ``added`` new anchors (per-anchor and per-Gaussian entries)."""
         for name, value in state.items():
             if _per_gaussian(name) or name in self.anchor_state_keys:
-                state[name] = torch.cat([value, value.new_zeros(added * k if _per_gaussian(name) else added)])
+                rows = added * k if _per_gaussian(name) else added
+                state[name] = torch.cat([value, value.new_zeros((rows, *value.shape[1:]))])
 
 
 def _per_gaussian(state_key: str) -> bool:
-    """Gradient statistics have one entry per neural Gaussian (N·k), the others one per anchor."""
-    return state_key.endswith(("grad_accum", "grad_denom"))
+    """Gradient (and position) statistics have one row per neural Gaussian (N·k), the others one
+    per anchor."""
+    return state_key.endswith(("grad_accum", "grad_denom", "pos_accum"))
