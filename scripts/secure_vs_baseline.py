@@ -12,9 +12,11 @@ the hidden object's shape each anchor cloud shows; draws the anchor clouds side 
 
 The anchor-cloud PNG needs matplotlib (``pip install -e ".[plots]"``).
 
-A variant is ``MODE[:lambda=X][:fixed-scaling]``: the density mode (or no-hdger), λ overriding the
-payload's default, and ``fixed-scaling`` to keep ℓ_hid from moving the public anchor scalings l_v
-(``SecureTrainer(hidden_scaling_grad=False)``).
+A variant is ``MODE[:lambda=X][:fixed-scaling][:public-growth]``: the density mode (or no-hdger), λ
+overriding the payload's default, ``fixed-scaling`` to keep ℓ_hid from moving the public anchor
+scalings l_v (``SecureTrainer(hidden_scaling_grad=False)``), ``public-growth`` to place Γ_hid anchors
+at the public offsets' positions (``hidden_growth_at="public"``, this project's placement before
+2026-11-22).
 """
 import argparse
 import json
@@ -69,7 +71,7 @@ def write_report(out: Path, meta: dict, rows: dict) -> str:
 
 
 def parse_variant(text: str) -> tuple[str, dict]:
-    """``MODE[:lambda=X][:fixed-scaling]`` -> (row label, SecureTrainer keyword arguments)."""
+    """``MODE[:lambda=X][:fixed-scaling][:public-growth]`` -> (row label, SecureTrainer keyword arguments)."""
     mode, *opts = text.split(":")
     kwargs = {"mode": "rdo" if mode == "no-hdger" else mode, "hdger": mode != "no-hdger"}
     notes = [] if mode == "rdo" else [mode]
@@ -80,8 +82,11 @@ def parse_variant(text: str) -> tuple[str, dict]:
         elif opt == "fixed-scaling":
             kwargs["hidden_scaling_grad"] = False
             notes.append("l_v public only")
+        elif opt == "public-growth":
+            kwargs["hidden_growth_at"] = "public"
+            notes.append("Γ_hid at public positions")
         else:
-            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, fixed-scaling)")
+            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, fixed-scaling, public-growth)")
     return ("SecureGS" + (f" ({', '.join(notes)})" if notes else "")), kwargs
 
 
@@ -102,7 +107,7 @@ def main():
     ap.add_argument("--hide", default="mug")
     ap.add_argument("--payload", default="object+bits:48")
     ap.add_argument("--modes", default="rdo,scaffold",
-                    help="SecureGS variants MODE[:lambda=X][:fixed-scaling]: density modes rdo, scaffold (w/o "
+                    help="SecureGS variants MODE[:lambda=X][:fixed-scaling][:public-growth]: density modes rdo, scaffold (w/o "
                          "RDO), global, shared; no-hdger (RDO with explicit hidden offsets)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/secure_vs_baseline"))

@@ -40,10 +40,11 @@ def cmd_hide(args) -> int:
     config = TrainConfig(iterations=args.iterations, seed=args.seed,
                          tile_size=args.tile_size or (8 if device == "cpu" else 16))
     record = {"scene": dataclasses.asdict(spec), "train": config.to_dict(), "payload": payload.describe(),
-              "mode": args.mode}
+              "mode": args.mode, "hidden_weight": args.hidden_weight}
     resume = prepare_run(run, record, args)
     passphrase = _passphrase(args)  # fail before training, not after
-    trainer = SecureTrainer(spec.load(), config, payload, device=device, mode=args.mode)
+    trainer = SecureTrainer(spec.load(), config, payload, device=device, mode=args.mode,
+                            hidden_weight=args.hidden_weight)
     return start_training(trainer, run, record, resume, args,
                           finish=lambda: finish_container(trainer, run, spec, passphrase))
 
@@ -160,6 +161,9 @@ def add_secure_parsers(sub, add_scene_arguments, add_training_arguments) -> None
     p.add_argument("--level", choices=("object", "scene"), default="object",
                    help="hidden object alone on a background (object) or inside the scene (scene)")
     p.add_argument("--mode", choices=MODES, default="rdo", help="density strategy (ablations: scaffold, global, shared)")
+    p.add_argument("--hidden-weight", type=float, metavar="LAMBDA",
+                   help="λ of ℓ_ori + λ·ℓ_hid (default: the paper's 10 for objects, 0.1 for an image, 1 for a "
+                        "scene); lower keeps the cover scene closer to a plain Scaffold-GS model")
     p.add_argument("--passphrase-env", help="seal the key with the passphrase in this environment variable")
     p.set_defaults(func=cmd_hide)
 
