@@ -12,13 +12,14 @@ the hidden object's shape each anchor cloud shows; draws the anchor clouds side 
 
 The anchor-cloud PNG needs matplotlib (``pip install -e ".[plots]"``).
 
-A variant is ``MODE[:lambda=X][:fixed-scaling][:public-growth]``: the density mode (or no-hdger), λ
-overriding the payload's default, ``fixed-scaling`` to keep ℓ_hid from moving the public anchor
-scalings l_v (``SecureTrainer(hidden_scaling_grad=False)``), ``public-growth`` to place Γ_hid anchors
-at the public offsets' positions (``hidden_growth_at="public"``, this project's placement before
-2026-11-22).
+A variant is ``MODE[:OPTION]...``: the density mode (or no-hdger), then any of ``lambda=X`` (λ
+overriding the payload's default), ``fixed-scaling`` (keep ℓ_hid from moving the public anchor
+scalings l_v: ``SecureTrainer(hidden_scaling_grad=False)``) and ``FIELD=VALUE`` for a field of
+``RegionAwareStrategy`` (``r_down=16``, ``hidden_every=4``, ``hidden_growth_at=public``: Γ_hid
+anchors at the public offsets' positions, this project's placement before 2026-11-22).
 """
 import argparse
+import dataclasses
 import json
 import os
 import tempfile
@@ -33,6 +34,7 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import save_scaffold
 from securegs_warp.io.atomic import atomic_write
 from securegs_warp.secure import PayloadSpec, SecureTrainer
+from securegs_warp.secure.strategy import RegionAwareStrategy
 from securegs_warp.secure.security import exposure, plot_anchor_clouds
 from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
 
@@ -71,22 +73,26 @@ def write_report(out: Path, meta: dict, rows: dict) -> str:
 
 
 def parse_variant(text: str) -> tuple[str, dict]:
-    """``MODE[:lambda=X][:fixed-scaling][:public-growth]`` -> (row label, SecureTrainer keyword arguments)."""
+    """``MODE[:OPTION]...`` -> (row label, SecureTrainer keyword arguments); see the module docstring."""
     mode, *opts = text.split(":")
-    kwargs = {"mode": "rdo" if mode == "no-hdger" else mode, "hdger": mode != "no-hdger"}
+    kwargs = {"mode": "rdo" if mode == "no-hdger" else mode, "hdger": mode != "no-hdger", "strategy_options": {}}
+    fields = [f.name for f in dataclasses.fields(RegionAwareStrategy)]
     notes = [] if mode == "rdo" else [mode]
     for opt in opts:
-        if opt.startswith("lambda="):
-            kwargs["hidden_weight"] = float(opt.removeprefix("lambda="))
-            notes.append(f"λ={kwargs['hidden_weight']:g}")
+        name, _, value = opt.partition("=")
+        if name == "lambda":
+            kwargs["hidden_weight"] = float(value)
+            notes.append(f"λ={float(value):g}")
         elif opt == "fixed-scaling":
             kwargs["hidden_scaling_grad"] = False
             notes.append("l_v public only")
-        elif opt == "public-growth":
-            kwargs["hidden_growth_at"] = "public"
-            notes.append("Γ_hid at public positions")
+        elif name in fields and value:
+            kind = type(getattr(RegionAwareStrategy(), name))
+            kwargs["strategy_options"][name] = value.lower() == "true" if kind is bool else kind(value)
+            notes.append(opt)
         else:
-            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, fixed-scaling, public-growth)")
+            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, fixed-scaling, or a "
+                             f"RegionAwareStrategy field=VALUE: {', '.join(fields)})")
     return ("SecureGS" + (f" ({', '.join(notes)})" if notes else "")), kwargs
 
 
@@ -107,7 +113,7 @@ def main():
     ap.add_argument("--hide", default="mug")
     ap.add_argument("--payload", default="object+bits:48")
     ap.add_argument("--modes", default="rdo,scaffold",
-                    help="SecureGS variants MODE[:lambda=X][:fixed-scaling][:public-growth]: density modes rdo, scaffold (w/o "
+                    help="SecureGS variants MODE[:lambda=X][:fixed-scaling][:FIELD=VALUE]: density modes rdo, scaffold (w/o "
                          "RDO), global, shared; no-hdger (RDO with explicit hidden offsets)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/secure_vs_baseline"))

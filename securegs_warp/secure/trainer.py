@@ -27,15 +27,15 @@ class SecureTrainer(ScaffoldTrainer):
     hidden_scaling_grad: let ℓ_hid move the anchor scalings l_v. They are public (stored in the
         release) and scale the public offsets and Gaussians; with False only ℓ_ori shapes them and
         the hidden branch reaches the public file through the anchor features alone.
-    hidden_growth_at: where Γ_hid anchors are placed (RegionAwareStrategy.hidden_growth_at).
+    strategy_options: RegionAwareStrategy fields to override (r_down, hidden_every,
+        hidden_growth_at, ...).
     """
 
     def __init__(self, scene: SceneData, config: TrainConfig, payload: PayloadSpec, device="cpu",
                  mode: str = "rdo", hdger: bool = True, hidden_weight: float | None = None,
-                 hidden_scaling_grad: bool = True, hidden_growth_at: str = "hidden"):
-        strategy = RegionAwareStrategy.for_iterations(config.iterations, mode=mode,
-                                                      use_bbox=payload.kind in ("object", "image"),
-                                                      hidden_growth_at=hidden_growth_at)
+                 hidden_scaling_grad: bool = True, strategy_options: dict | None = None):
+        options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
+        strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
         super().__init__(scene, config, device=device, strategy=strategy)
         self.payload = build_payload(payload, scene, self.device)
         if hidden_weight is not None:
