@@ -16,14 +16,17 @@ def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def render_view(model, heads, cam: Camera, background: torch.Tensor, *, camera_index: int | None = None,
-                offset_source=None, scaling_grad: bool = True, **raster_options) -> dict:
+                offset_source=None, scaling_grad: bool = True, effects=None, **raster_options) -> dict:
     """Decode ``model``'s anchors visible from ``cam`` with ``heads`` and rasterize them.
 
     offset_source: where the Gaussians sit (default: the stored public offsets; SecureGS's hidden
-    branch passes its private offset predictor). scaling_grad: see ``generate_neural_gaussians``. Returns dict: ``image`` [H, W, 3], ``alpha``
+    branch passes its private offset predictor). scaling_grad: see ``generate_neural_gaussians``.
+    effects: an ``Effects`` whose rasterizer flags (antialiasing, depth) are added to ``raster_options``. Returns dict: ``image`` [H, W, 3], ``alpha``
     [H, W, 1], ``info`` (rasterize info), ``gaussians`` (generate_neural_gaussians output).
     """
     device = model.xyz.device
+    if effects is not None:
+        raster_options = {**effects.raster_options(), **raster_options}
     viewmat, K = camera_tensors(cam, device)
     visible = visible_anchor_mask(model, viewmat, K, cam.width, cam.height)
     # Views without an appearance code of their own (held-out ones) use the first camera's.

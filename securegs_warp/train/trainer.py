@@ -15,6 +15,7 @@ import time
 import torch
 
 from ..data import Camera, SceneData
+from ..effects import infer_scene_effects
 from .. import evaluation  # module import: evaluation itself imports train.losses
 from ..io.atomic import atomic_write
 from ..model import ANCHOR_PARAM_NAMES, AnchorModel, ScaffoldHeads, anchor_param_groups
@@ -88,12 +89,9 @@ class ScaffoldTrainer:
         torch.manual_seed(config.seed)  # MLP initialisation
         self.model = AnchorModel.from_points(scene.points, voxel_size=config.voxel_size, feat_dim=config.feat_dim,
                                              n_offsets=config.n_offsets, device=self.device)
-        self.heads = ScaffoldHeads(
-            config.feat_dim, config.n_offsets, use_feat_bank=config.use_feat_bank,
-            appearance_dim=config.appearance_dim, num_cameras=len(scene.train) if config.appearance_dim else 0,
-            add_opacity_dist=config.add_opacity_dist, add_cov_dist=config.add_cov_dist,
-            add_color_dist=config.add_color_dist,
-        ).to(self.device)
+        # Only the head inputs the effects ask for are built (effects.py).
+        self.effects = infer_scene_effects(scene, config=config)
+        self.heads = ScaffoldHeads(config.feat_dim, config.n_offsets, **self.effects.head_kwargs()).to(self.device)
         self.spatial_scale = float(scene.cameras_extent)
         self.optimizer = self._make_optimizer()
         self.strategy = strategy or ScaffoldStrategy.for_iterations(config.iterations)
