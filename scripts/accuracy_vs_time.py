@@ -191,9 +191,96 @@ def raster_section(args):
     return rows
 
 
-# Model and training knobs (Gaussians per anchor k, MLP width, feature bank, training iterations)
-# join as further sections, e.g. "model": Section(model_section, x="train_s", y="test_psnr_db").
-SECTIONS = {"raster": Section(raster_section, x="fwd_bwd_ms", y="psnr_db")}
+# ---------------------------------------------------------------------------------------------
+# The model and training sections: Scaffold-GS trained on the built-in synthetic scene
+
+# One knob at a time away from TrainConfig's defaults (k = 10, feat_dim = 32, no feature bank):
+# label -> TrainConfig overrides. feat_dim is also the hidden width of Scaffold-GS's MLPs.
+MODEL_KNOBS = {"default": {}, "k=5": {"n_offsets": 5}, "k=20": {"n_offsets": 20},
+               "feat_dim=16": {"feat_dim": 16}, "feat_dim=64": {"feat_dim": 64},
+               "feat_bank=on": {"use_feat_bank": True}}
+
+# Fractions of --iterations at which the training section evaluates.
+TRAINING_FRACTIONS = (0.1, 0.25, 0.5, 1.0)
+
+
+def synthetic_scene(args):
+    """The built-in synthetic scene at --width × --height (what ``securegs train`` trains on)."""
+    from securegs_warp.data import make_synthetic_scene
+
+    return make_synthetic_scene(width=args.width, height=args.height, n_train=args.train_views,
+                                n_test=args.test_views)
+
+
+def scene_label(args):
+    return f"synthetic {args.width}×{args.height}, {args.iterations} it"
+
+
+def make_trainer(scene, args, **overrides):
+    """ScaffoldTrainer with the CLI's tile size for the device (8 on the CPU, 16 on the GPU)."""
+    from securegs_warp.train import ScaffoldTrainer, TrainConfig
+
+    config = TrainConfig(iterations=args.iterations, tile_size=8 if args.device == "cpu" else 16, **overrides)
+    return ScaffoldTrainer(scene, config, device=args.device)
+
+
+def held_out(trainer, rounds):
+    """Held-out PSNR/SSIM, render ms per frame (trainer.evaluate's render_fps over ``rounds`` passes)
+    and the Gaussians of the first held-out view after culling."""
+    metrics = trainer.evaluate(timing_repeats=rounds)
+    with torch.no_grad():
+        gaussians = trainer.render(trainer.scene.test[0])["gaussians"]["scales"].shape[0]
+    return {"test_psnr_db": metrics["psnr"], "test_ssim": metrics["ssim"], "render_ms": 1000 / metrics["fps"],
+            "anchors": metrics["anchors"], "gaussians": gaussians}
+
+
+def warm_up(scene, args):
+    """Two steps and a render of a throwaway trainer, so that kernel compilation is not timed in the
+    first point."""
+    trainer = make_trainer(scene, args)
+    for _ in range(2):
+        trainer.step()
+    with torch.no_grad():
+        trainer.render(scene.test[0])
+
+
+def model_section(args):
+    """Each MODEL_KNOBS point trained for --iterations from scratch; train time is step() only."""
+    scene = synthetic_scene(args)
+    warm_up(scene, args)
+    rows = []
+    for label, overrides in MODEL_KNOBS.items():
+        print(f"model {label}: training {args.iterations} iterations...", flush=True)
+        trainer = make_trainer(scene, args, **overrides)
+        for _ in range(args.iterations):
+            trainer.step()
+        rows.append({"section": "model", "scene": scene_label(args), "point": label, **held_out(trainer, args.rounds),
+                     "train_s": trainer.train_seconds, "step_ms": 1000 * trainer.train_seconds / args.iterations})
+    return rows
+
+
+def training_section(args):
+    """One default run, evaluated at TRAINING_FRACTIONS of --iterations; train_s is trainer.train_seconds,
+    which counts step() only, so evaluation does not add to it."""
+    scene = synthetic_scene(args)
+    warm_up(scene, args)
+    trainer = make_trainer(scene, args)
+    checkpoints = sorted({max(1, round(f * args.iterations)) for f in TRAINING_FRACTIONS})
+    rows = []
+    for iteration in checkpoints:
+        while trainer.step_count < iteration:
+            trainer.step()
+        print(f"training: {iteration} iterations, {trainer.train_seconds:.1f} s", flush=True)
+        rows.append({"section": "training", "scene": scene_label(args), "point": f"{iteration} it",
+                     "train_s": trainer.train_seconds, **held_out(trainer, args.rounds)})
+    return rows
+
+
+# x: render ms per frame for the model section, because a model's size and MLP width are paid at
+# every frame a viewer draws, whereas training is paid once (step_ms and train_s are columns too).
+SECTIONS = {"raster": Section(raster_section, x="fwd_bwd_ms", y="psnr_db"),
+            "model": Section(model_section, x="render_ms", y="test_psnr_db"),
+            "training": Section(training_section, x="train_s", y="test_psnr_db")}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -296,13 +383,27 @@ def main():
                         help="scene compared with the float64 dense reference (its memory grows as N·W·H)")
     parser.add_argument("--timing", type=int, nargs=3, default=[20000, 320, 240], metavar=("N", "W", "H"),
                         help="larger scene, compared with the default configuration")
-    parser.add_argument("--large", action="store_true", help="timing scene of 1M Gaussians at 1920×1080 (GPU)")
+    parser.add_argument("--large", action="store_true",
+                        help="GPU preset: raster timing scene of 1M Gaussians at 1920×1080; model/training "
+                             "at 1920×1080 for 2000 iterations")
+    parser.add_argument("--iterations", type=int, default=None,
+                        help="model/training: iterations per run (default 200, --large 2000)")
+    parser.add_argument("--width", type=int, default=None, help="model/training: synthetic scene width "
+                                                                "(default 64, --large 1920)")
+    parser.add_argument("--height", type=int, default=None, help="model/training: synthetic scene height "
+                                                                 "(default 48, --large 1080)")
+    parser.add_argument("--train-views", type=int, default=16, help="model/training: synthetic training views")
+    parser.add_argument("--test-views", type=int, default=4, help="model/training: synthetic held-out views")
     parser.add_argument("--rounds", type=int, default=5, help="timed rounds over all points")
     parser.add_argument("--out", default=os.environ.get("OUT") or "runs/accuracy_vs_time")
     args = parser.parse_args()
     unknown = set(args.sections.split(",")) - set(SECTIONS)
     if unknown:
         parser.error(f"unknown sections {sorted(unknown)}; known: {list(SECTIONS)}")
+    preset = (2000, 1920, 1080) if args.large else (200, 64, 48)
+    for name, value in zip(("iterations", "width", "height"), preset):
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     wp.config.quiet = True
     wp.init()
 
