@@ -23,6 +23,23 @@ transmittance_min, radius_rule, tile_size, fast_math, color_storage) and measure
 Scenes are bench_rasterizer.make_scene's, with the scales multiplied by 1920/width so that the
 Gaussians cover as many pixels as in the 1080p benchmark (1M at 1920×1080 is its scene unchanged).
 
+The model section trains Scaffold-GS (ScaffoldTrainer, the CLI's tile size for the device) on the
+built-in synthetic scene (--width × --height, --train-views/--test-views) for --iterations from
+scratch, moving one knob at a time from TrainConfig's defaults: Gaussians per anchor k (n_offsets
+5/10/20), feat_dim (16/32/64; also the MLPs' hidden width) and the feature bank on. Per point:
+held-out PSNR and SSIM (trainer.evaluate), render_ms (ms per held-out frame, from evaluate's
+render_fps over --rounds passes), train_s and step_ms (step() wall time only), anchors and
+gaussians (those the first held-out view keeps after culling). Its plot draws render_ms, not train
+time: k and the MLP width are paid at every frame a viewer draws, training once.
+
+The training section trains the default configuration once and evaluates at 10/25/50/100% of
+--iterations: held-out PSNR against train_s (trainer.train_seconds, which counts step() only, so
+evaluation does not pollute it). Both sections warm up a throwaway trainer first so that kernel
+compilation is not timed.
+
+    python scripts/accuracy_vs_time.py --sections model,training           # CPU: 64×48, 150 iterations
+    python scripts/accuracy_vs_time.py --sections model,training --large   # GPU: 1920×1080, 2000 iterations
+
 Writes accuracy_vs_time.csv, accuracy_vs_time.md and accuracy_vs_time.png (time against PSNR per
 section and scene, Pareto front marked) to --out and prints the markdown table last.
 """
@@ -209,7 +226,7 @@ def synthetic_scene(args):
     from securegs_warp.data import make_synthetic_scene
 
     return make_synthetic_scene(width=args.width, height=args.height, n_train=args.train_views,
-                                n_test=args.test_views)
+                                n_test=args.test_views, n_points=args.points)
 
 
 def scene_label(args):
@@ -300,11 +317,24 @@ def cell(value):
     return "–" if value is None else str(value)
 
 
+# What the model and training sections' columns mean, listed under the table when present.
+COLUMN_NOTES = {
+    "test_psnr_db": "held-out PSNR (dB) of the trained model on the synthetic scene's test views",
+    "test_ssim": "held-out SSIM",
+    "render_ms": "ms per held-out frame (forward render, trainer.evaluate's render_fps)",
+    "anchors": "anchors after training",
+    "gaussians": "neural Gaussians the first held-out view keeps after culling",
+    "train_s": "training wall time, step() only (evaluation excluded)",
+    "step_ms": "train_s per iteration (forward + backward + densification + Adam)",
+}
+
+
 def markdown(rows, title):
     keys = columns(rows)
     lines = [title, "", "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     lines += ["| " + " | ".join(cell(row.get(k)) for k in keys) + " |" for row in rows]
-    return "\n".join(lines) + "\n"
+    notes = [f"- {key}: {COLUMN_NOTES[key]}" for key in keys if key in COLUMN_NOTES]
+    return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
 
 
 def place_labels(ax, labels, points):
@@ -387,21 +417,23 @@ def main():
                         help="GPU preset: raster timing scene of 1M Gaussians at 1920×1080; model/training "
                              "at 1920×1080 for 2000 iterations")
     parser.add_argument("--iterations", type=int, default=None,
-                        help="model/training: iterations per run (default 200, --large 2000)")
+                        help="model/training: iterations per run (default 150, --large 2000)")
     parser.add_argument("--width", type=int, default=None, help="model/training: synthetic scene width "
                                                                 "(default 64, --large 1920)")
     parser.add_argument("--height", type=int, default=None, help="model/training: synthetic scene height "
                                                                  "(default 48, --large 1080)")
     parser.add_argument("--train-views", type=int, default=16, help="model/training: synthetic training views")
     parser.add_argument("--test-views", type=int, default=4, help="model/training: synthetic held-out views")
+    parser.add_argument("--points", type=int, default=None,
+                        help="model/training: initial points, one anchor per voxel (default 1000, --large 4000)")
     parser.add_argument("--rounds", type=int, default=5, help="timed rounds over all points")
     parser.add_argument("--out", default=os.environ.get("OUT") or "runs/accuracy_vs_time")
     args = parser.parse_args()
     unknown = set(args.sections.split(",")) - set(SECTIONS)
     if unknown:
         parser.error(f"unknown sections {sorted(unknown)}; known: {list(SECTIONS)}")
-    preset = (2000, 1920, 1080) if args.large else (200, 64, 48)
-    for name, value in zip(("iterations", "width", "height"), preset):
+    preset = (2000, 1920, 1080, 4000) if args.large else (150, 64, 48, 1000)
+    for name, value in zip(("iterations", "width", "height", "points"), preset):
         if getattr(args, name) is None:
             setattr(args, name, value)
     wp.config.quiet = True

@@ -1,0 +1,35 @@
+"""scripts/accuracy_vs_time.py's model and training sections on a tiny scene: rows carry the columns
+their plot and table need, and the training section's checkpoints count iterations in order."""
+import argparse
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
+import accuracy_vs_time as avt  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def args():
+    return argparse.Namespace(iterations=2, width=24, height=18, train_views=3, test_views=1, rounds=1, points=200,
+                              device="cpu")
+
+
+def test_training_section_rows(args):
+    rows = avt.training_section(args)
+    spec = avt.SECTIONS["training"]
+    assert [row["point"] for row in rows] == ["1 it", "2 it"]
+    assert all(isinstance(row[spec.x], float) and isinstance(row[spec.y], float) for row in rows)
+    assert rows[0]["train_s"] < rows[1]["train_s"]
+
+
+def test_model_section_rows_and_outputs(args, tmp_path, monkeypatch):
+    monkeypatch.setattr(avt, "MODEL_KNOBS", {"default": {}, "k=5": {"n_offsets": 5}})
+    rows = avt.model_section(args)
+    spec = avt.SECTIONS["model"]
+    assert [row["point"] for row in rows] == ["default", "k=5"]
+    assert all(row[spec.x] > 0 and row["gaussians"] > 0 for row in rows)
+    pytest.importorskip("matplotlib")
+    table = avt.write(rows, tmp_path, "title")
+    assert "- render_ms:" in table and (tmp_path / "accuracy_vs_time.png").stat().st_size > 0
