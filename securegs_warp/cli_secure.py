@@ -40,11 +40,13 @@ def cmd_hide(args) -> int:
     config = TrainConfig(iterations=args.iterations, seed=args.seed,
                          tile_size=args.tile_size or (8 if device == "cpu" else 16))
     record = {"scene": dataclasses.asdict(spec), "train": config.to_dict(), "payload": payload.describe(),
-              "mode": args.mode, "hidden_weight": args.hidden_weight}
+              "mode": args.mode, "hidden_weight": args.hidden_weight, "r_down": args.r_down,
+              "hidden_every": args.hidden_every}
     resume = prepare_run(run, record, args)
     passphrase = _passphrase(args)  # fail before training, not after
     trainer = SecureTrainer(spec.load(), config, payload, device=device, mode=args.mode,
-                            hidden_weight=args.hidden_weight)
+                            hidden_weight=args.hidden_weight,
+                            strategy_options={"r_down": args.r_down, "hidden_every": args.hidden_every})
     return start_training(trainer, run, record, resume, args,
                           finish=lambda: finish_container(trainer, run, spec, passphrase))
 
@@ -164,6 +166,11 @@ def add_secure_parsers(sub, add_scene_arguments, add_training_arguments) -> None
     p.add_argument("--hidden-weight", type=float, metavar="LAMBDA",
                    help="λ of ℓ_ori + λ·ℓ_hid (default: the paper's 10 for objects, 0.1 for an image, 1 for a "
                         "scene); lower keeps the cover scene closer to a plain Scaffold-GS model")
+    p.add_argument("--r-down", type=float, default=4.0,
+                   help="RDO: the public growth threshold is divided by this inside the hidden object's box "
+                        "(more public anchors there mask the hidden ones; the paper's 4)")
+    p.add_argument("--hidden-every", type=int, default=2,
+                   help="RDO: accumulate ∇_hid every N steps (larger grows fewer hidden-only anchors)")
     p.add_argument("--passphrase-env", help="seal the key with the passphrase in this environment variable")
     p.set_defaults(func=cmd_hide)
 

@@ -43,6 +43,10 @@ class RegionAwareStrategy(ScaffoldStrategy):
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"RDO mode must be one of {MODES}, got {self.mode!r}")
+        if not self.r_down >= 1.0:
+            raise ValueError(f"r_down must be >= 1 (it divides the growth threshold), got {self.r_down}")
+        if self.hidden_every < 1:
+            raise ValueError(f"hidden_every must be >= 1, got {self.hidden_every}")
         if self.hidden_growth_at not in ("hidden", "public"):
             raise ValueError(f"hidden_growth_at must be 'hidden' or 'public', got {self.hidden_growth_at!r}")
 
