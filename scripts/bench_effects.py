@@ -1,0 +1,126 @@
+"""What each effect costs: render forward and forward+backward of one random Scaffold-GS model for the
+base effect set and for base + each single effect, measured side by side in one run.
+
+Rounds are interleaved (every variant once per round) so machine load falls on all alike; each number
+is the median over rounds. CUDA events on a GPU, perf_counter on the CPU (bench_rasterizer.timed).
+
+    python scripts/bench_effects.py                                   # CPU, quick
+    python scripts/bench_effects.py --device cuda --width 1920 --height 1080 --anchors 100000
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import os
+import statistics
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_rasterizer import timed  # noqa: E402
+
+from securegs_warp.data import Camera  # noqa: E402
+from securegs_warp.effects import Effects  # noqa: E402
+from securegs_warp.io.atomic import atomic_write  # noqa: E402
+from securegs_warp.model import AnchorModel, ScaffoldHeads  # noqa: E402
+from securegs_warp.render import render_view  # noqa: E402
+from securegs_warp.secure.heads import PrivateHeads  # noqa: E402
+
+FEAT, OFFSETS, BITS, CAMERAS = 32, 10, 48, 4
+VARIANTS = {
+    "base": Effects(),
+    "antialiased": Effects(antialiased=True),
+    "depth accumulated": Effects(depth="accumulated"),
+    "depth expected": Effects(depth="expected"),
+    "background": Effects(background=(1.0, 1.0, 1.0)),
+    "feature bank": Effects(feature_bank=True),
+    "appearance": Effects(appearance_dim=32, num_cameras=CAMERAS),
+    "distance inputs": Effects(opacity_dist=True, cov_dist=True, color_dist=True),
+    "hidden object": Effects(hidden={"object"}),
+    "hidden bits": Effects(hidden={"bits"}),
+}
+
+
+def random_model(anchors: int, device) -> AnchorModel:
+    """``anchors`` anchors (× OFFSETS Gaussians) filling the view of the identity camera, 2–4 units away."""
+    g = torch.Generator().manual_seed(0)
+    xyz = torch.rand(anchors, 3, generator=g) * torch.tensor([4.0, 3.0, 2.0]) - torch.tensor([2.0, 1.5, -2.0])
+    return AnchorModel(
+        xyz=xyz, feat=torch.randn(anchors, FEAT, generator=g) * 0.5,
+        offsets=torch.randn(anchors, OFFSETS, 3, generator=g) * 0.5,
+        scaling=torch.log(torch.full((anchors, 6), 0.03)), rotation=torch.tensor([[1.0, 0, 0, 0]]).repeat(anchors, 1),
+        opacity=torch.zeros(anchors, 1),
+    ).to(device)
+
+
+def render_fn(model, effects: Effects, cam: Camera, device, tile_size: int):
+    """A closure rendering ``cam`` with only ``effects``' stages; returns (image [H, W, 3], alpha [H, W, 1])."""
+    torch.manual_seed(0)
+    heads = ScaffoldHeads(FEAT, OFFSETS, **effects.head_kwargs()).to(device)
+    private = PrivateHeads(heads, **effects.private_head_kwargs(bits=BITS)).to(device) if effects.hidden else None
+    background = effects.background_tensor(device)
+
+    def fn():
+        out = render_view(model, heads, cam, background, camera_index=1, effects=effects, tile_size=tile_size)
+        image, alpha = out["image"], out["alpha"]
+        if private is not None and private.decoder is not None:
+            hid = render_view(model, private.decoder, cam, None, offset_source=private.hidden_offsets,
+                              effects=effects, tile_size=tile_size)
+            image, alpha = image + hid["image"], alpha + hid["alpha"]
+        if private is not None and private.bit_mlp is not None:
+            image = image + 0.0 * private.bit_logits(model.feat).sigmoid().mean()
+        return image, alpha
+    return fn
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--width", type=int, default=128)
+    ap.add_argument("--height", type=int, default=96)
+    ap.add_argument("--anchors", type=int, default=2000)
+    ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--tile-size", type=int, default=None, help="default: 8 on the CPU, 16 on CUDA")
+    ap.add_argument("--out", default="runs/bench_effects")
+    args = ap.parse_args()
+    device = args.device
+    tile = args.tile_size or (16 if device == "cuda" else 8)
+    f = 0.9 * args.width
+    K = np.array([[f, 0, args.width / 2], [0, f, args.height / 2], [0, 0, 1]], dtype=np.float32)
+    cam = Camera("bench", np.eye(4, dtype=np.float32), K, args.width, args.height)
+    model = random_model(args.anchors, device)
+    grads = (torch.rand(args.height, args.width, 3, device=device), torch.rand(args.height, args.width, 1, device=device))
+
+    fns = {name: render_fn(model, e, cam, device, tile) for name, e in VARIANTS.items()}
+    times = {(name, bwd): [] for name in fns for bwd in (False, True)}
+    for name, fn in fns.items():  # warm-up: compiles each variant's kernels once
+        timed(fn, True, device, 1, 1, grads)
+    for _ in range(args.rounds):
+        for name, fn in fns.items():
+            for bwd in (False, True):
+                times[(name, bwd)].append(timed(fn, bwd, device, 0, 1, grads))
+
+    med = {key: statistics.median(v) for key, v in times.items()}
+    rows = [{"variant": name, "effects": VARIANTS[name].describe(), "fwd_ms": med[(name, False)],
+             "fwd_bwd_ms": med[(name, True)], "fwd_ratio": med[(name, False)] / med[("base", False)],
+             "fwd_bwd_ratio": med[(name, True)] / med[("base", True)]} for name in fns]
+    header = (f"{device}, {args.width}x{args.height}, {args.anchors} anchors × {OFFSETS} offsets, tile {tile}, "
+              f"median of {args.rounds} interleaved rounds\n\n")
+    md = header + "| variant | effects | fwd ms | fwd+bwd ms | fwd ratio | fwd+bwd ratio |\n|---|---|---|---|---|---|\n"
+    md += "".join(f"| {r['variant']} | {r['effects']} | {r['fwd_ms']:.2f} | {r['fwd_bwd_ms']:.2f} | "
+                  f"{r['fwd_ratio']:.2f} | {r['fwd_bwd_ratio']:.2f} |\n" for r in rows)
+    print(md)
+    os.makedirs(args.out, exist_ok=True)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write(os.path.join(args.out, "effects.csv"), lambda fh: fh.write(buf.getvalue().encode()))
+    atomic_write(os.path.join(args.out, "effects.md"), lambda fh: fh.write(md.encode()))
+
+
+if __name__ == "__main__":
+    main()
