@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import torch
 
 DEPTH_MODES = (None, "accumulated", "expected")
 HIDDEN_BRANCHES = frozenset({"object", "image", "bits", "scene"})
@@ -79,7 +80,6 @@ class Effects:
 
     def background_tensor(self, device="cpu"):
         """(3,) float32 background on ``device``, or None."""
-        import torch
         return None if self.background is None else torch.tensor(self.background, dtype=torch.float32, device=device)
 
     def head_kwargs(self) -> dict:
