@@ -23,7 +23,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_rasterizer import timed  # noqa: E402
 
 from securegs_warp.data import Camera  # noqa: E402
-from securegs_warp.effects import Effects  # noqa: E402
+from securegs_warp.effects import Effects, heads_with_neutral_effects  # noqa: E402
 from securegs_warp.io.atomic import atomic_write  # noqa: E402
 from securegs_warp.model import AnchorModel, ScaffoldHeads  # noqa: E402
 from securegs_warp.render import render_view  # noqa: E402
@@ -56,11 +56,15 @@ def random_model(anchors: int, device) -> AnchorModel:
     ).to(device)
 
 
-def render_fn(model, effects: Effects, cam: Camera, device, tile_size: int):
-    """A closure rendering ``cam`` with only ``effects``' stages; returns (image [H, W, 3], alpha [H, W, 1])."""
-    torch.manual_seed(0)
-    heads = ScaffoldHeads(FEAT, OFFSETS, **effects.head_kwargs()).to(device)
+def render_fn(model, plain: ScaffoldHeads, effects: Effects, cam: Camera, device, tile_size: int):
+    """A closure rendering ``cam`` with only ``effects``' stages; returns (image [H, W, 3], alpha [H, W, 1]).
+
+    Every variant decodes the same Gaussians: its heads are ``plain`` widened with neutral weights for
+    its effects, and a hidden decoder is a copy of them, so a time differs only by the effect's stage."""
+    heads = heads_with_neutral_effects(plain, effects)
     private = PrivateHeads(heads, **effects.private_head_kwargs(bits=BITS)).to(device) if effects.hidden else None
+    if private is not None and private.decoder is not None:
+        private.decoder.load_state_dict(heads.state_dict())
     background = effects.background_tensor(device)
 
     def fn():
@@ -94,7 +98,9 @@ def main():
     model = random_model(args.anchors, device)
     grads = (torch.rand(args.height, args.width, 3, device=device), torch.rand(args.height, args.width, 1, device=device))
 
-    fns = {name: render_fn(model, e, cam, device, tile) for name, e in VARIANTS.items()}
+    torch.manual_seed(0)
+    plain = ScaffoldHeads(FEAT, OFFSETS).to(device)
+    fns = {name: render_fn(model, plain, e, cam, device, tile) for name, e in VARIANTS.items()}
     times = {(name, bwd): [] for name in fns for bwd in (False, True)}
     for name, fn in fns.items():  # warm-up: compiles each variant's kernels once
         timed(fn, True, device, 1, 1, grads)

@@ -136,3 +136,26 @@ def infer_scene_effects(scene, payload=None, config=None) -> Effects:
                  "color_dist": config.add_color_dist}
     bg = None if scene.background is None else tuple(np.asarray(scene.background, dtype=np.float32).tolist())
     return Effects(background=bg, hidden=frozenset(hidden), **heads)
+
+
+def heads_with_neutral_effects(plain, effects: Effects):
+    """``ScaffoldHeads`` built for ``effects`` that compute exactly what ``plain`` (heads with no
+    input effect) computes: plain's first-layer weights in the shared input columns, zeros in the
+    extra distance / appearance columns, and a feature bank whose softmax selects the full-resolution
+    feature. For checking a specialised variant against the general one, and for timing effects on
+    the same Gaussians (a fresh random head would keep a different number of them)."""
+    from .model import ScaffoldHeads
+
+    d = plain.feat_dim
+    heads = ScaffoldHeads(d, plain.n_offsets, **effects.head_kwargs()).to(plain.opacity_mlp[0].weight.device)
+    with torch.no_grad():
+        for name in ("opacity_mlp", "cov_mlp", "color_mlp"):
+            src, dst = getattr(plain, name), getattr(heads, name)
+            dst.load_state_dict({k: v for k, v in src.state_dict().items() if k != "0.weight"}, strict=False)
+            dst[0].weight.zero_()
+            dst[0].weight[:, : d + 3] = src[0].weight
+        if heads.feature_bank_mlp is not None:
+            heads.feature_bank_mlp[2].weight.zero_()
+            heads.feature_bank_mlp[2].bias.copy_(torch.tensor([-1e4, -1e4, 1e4]))  # softmax -> (0, 0, 1)
+    return heads
+

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from securegs_warp.data import Camera, SceneData
-from securegs_warp.effects import Effects, infer_scene_effects
+from securegs_warp.effects import Effects, heads_with_neutral_effects, infer_scene_effects
 from securegs_warp.model import AnchorModel, ScaffoldHeads
 from securegs_warp.render import render_view
 from securegs_warp.secure.heads import PrivateHeads
@@ -42,24 +42,6 @@ def plain_heads():
 
 def render(heads, effects=Effects(), background=None, **options):
     return render_view(tiny_model(), heads, camera(), background, effects=effects, **TILE, **options)
-
-
-def copy_with_neutral_extras(plain, effects):
-    """Heads built for ``effects`` that compute exactly what ``plain`` computes: the plain first-layer
-    weights in the shared input columns, zeros in the extra (distance / appearance) columns, and a
-    feature bank that selects the full-resolution feature."""
-    heads = ScaffoldHeads(D, K, **effects.head_kwargs())
-    with torch.no_grad():
-        for name in ("opacity_mlp", "cov_mlp", "color_mlp"):
-            src, dst = getattr(plain, name), getattr(heads, name)
-            dst.load_state_dict({k: v for k, v in src.state_dict().items() if not k.startswith("0.weight")},
-                                strict=False)
-            dst[0].weight.zero_()
-            dst[0].weight[:, : D + 3] = src[0].weight
-        if heads.feature_bank_mlp is not None:
-            heads.feature_bank_mlp[2].weight.zero_()
-            heads.feature_bank_mlp[2].bias.copy_(torch.tensor([-1e4, -1e4, 1e4]))  # softmax -> (0, 0, 1)
-    return heads
 
 
 # --- inference ---------------------------------------------------------------------------------------
@@ -145,7 +127,7 @@ def test_black_background_equals_no_background():
 ], ids=lambda e: e.describe())
 def test_head_effect_with_neutral_weights_equals_plain_heads(effects):
     plain = plain_heads()
-    general = copy_with_neutral_extras(plain, effects)
+    general = heads_with_neutral_effects(plain, effects)
     reference, result = render(plain), render(general, camera_index=2)
     assert torch.allclose(result["image"], reference["image"], atol=1e-6)
     assert torch.allclose(result["alpha"], reference["alpha"], atol=1e-6)
