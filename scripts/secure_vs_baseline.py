@@ -8,13 +8,14 @@ the hidden object's shape each anchor cloud shows; draws the anchor clouds side 
 
     python scripts/secure_vs_baseline.py --out runs/secure_vs_baseline               # CPU default
     python scripts/secure_vs_baseline.py --width 1920 --height 1080 --iterations 3000 # GPU
-    python scripts/secure_vs_baseline.py --modes rdo,rdo:lambda=1,rdo:fixed-scaling  # what costs fidelity
+    python scripts/secure_vs_baseline.py --modes rdo,rdo:lambda=1,rdo:feature-grad=0.3  # what costs fidelity
 
 The anchor-cloud PNG needs matplotlib (``pip install -e ".[plots]"``).
 
 A variant is ``MODE[:OPTION]...``: the density mode (or no-hdger), then any of ``lambda=X`` (λ
-overriding the payload's default), ``fixed-scaling`` (keep ℓ_hid from moving the public anchor
-scalings l_v: ``SecureTrainer(hidden_scaling_grad=False)``) and ``FIELD=VALUE`` for a field of
+overriding the payload's default), ``feature-grad=X`` and ``scaling-grad=X`` (the share of ℓ_hid's
+gradient reaching the public anchor features f_v and scalings l_v, 0 to 1:
+``SecureTrainer(hidden_feature_grad=, hidden_scaling_grad=)``) and ``FIELD=VALUE`` for a field of
 ``RegionAwareStrategy`` (``r_down=16``, ``hidden_every=4``, ``hidden_growth_at=public``: Γ_hid
 anchors at the public offsets' positions, this project's placement before 2026-11-22).
 """
@@ -39,7 +40,7 @@ from securegs_warp.secure.security import exposure, plot_anchor_clouds
 from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
 
 
-COLUMNS = ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
+COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
            "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
 
 
@@ -51,6 +52,25 @@ def train(trainer, label):
     print(f"{label}: {trainer.config.iterations} steps in {time.perf_counter() - t0:.0f} s, "
           f"{trainer.model.num_anchors} anchors, {nonfinite} steps with non-finite gradients", flush=True)
     return nonfinite
+
+
+@torch.no_grad()
+def public_psnr_by_region(trainer, scene) -> dict:
+    """Public held-out PSNR outside and inside the hidden object's footprint (its alpha in each test
+    view, dilated by 1% of the width): where the cover scene loses fidelity to the hidden branch.
+    PSNR of the squared error pooled over all views' pixels of the region."""
+    sums = {"off": [0.0, 0], "on": [0.0, 0]}
+    for cam in scene.test:
+        image = trainer.render(cam)["image"].clamp(0, 1)
+        err = ((image - torch.as_tensor(cam.image, device=image.device)) ** 2).mean(dim=-1)
+        alpha = torch.as_tensor(cam.hidden_alpha[..., 0], device=image.device)
+        r = max(1, cam.width // 100)
+        on = torch.nn.functional.max_pool2d((alpha > 0.01).float()[None, None], 2 * r + 1, 1, r)[0, 0] > 0
+        for name, mask in (("on", on), ("off", ~on)):
+            sums[name][0] += float(err[mask].sum())
+            sums[name][1] += int(mask.sum())
+    return {f"psnr_public_{name}_hidden": -10.0 * np.log10(total / max(count, 1)) if total > 0 else float("inf")
+            for name, (total, count) in sums.items()}
 
 
 def markdown_row(label, r) -> str:
@@ -83,16 +103,16 @@ def parse_variant(text: str) -> tuple[str, dict]:
         if name == "lambda":
             kwargs["hidden_weight"] = float(value)
             notes.append(f"λ={float(value):g}")
-        elif opt == "fixed-scaling":
-            kwargs["hidden_scaling_grad"] = False
-            notes.append("l_v public only")
+        elif name in ("feature-grad", "scaling-grad"):
+            kwargs["hidden_" + name.replace("-", "_")] = float(value)
+            notes.append(f"{'f_v' if name == 'feature-grad' else 'l_v'} grad×{float(value):g}")
         elif name in fields and value:
             kind = type(getattr(RegionAwareStrategy(), name))
             kwargs["strategy_options"][name] = value.lower() == "true" if kind is bool else kind(value)
             notes.append(opt)
         else:
-            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, fixed-scaling, or a "
-                             f"RegionAwareStrategy field=VALUE: {', '.join(fields)})")
+            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, feature-grad=X, scaling-grad=X, "
+                             f"or a RegionAwareStrategy field=VALUE: {', '.join(fields)})")
     return ("SecureGS" + (f" ({', '.join(notes)})" if notes else "")), kwargs
 
 
@@ -113,7 +133,7 @@ def main():
     ap.add_argument("--hide", default="mug")
     ap.add_argument("--payload", default="object+bits:48")
     ap.add_argument("--modes", default="rdo,scaffold",
-                    help="SecureGS variants MODE[:lambda=X][:fixed-scaling][:FIELD=VALUE]: density modes rdo, scaffold (w/o "
+                    help="SecureGS variants MODE[:lambda=X][:feature-grad=X][:scaling-grad=X][:FIELD=VALUE]: density modes rdo, scaffold (w/o "
                          "RDO), global, shared; no-hdger (RDO with explicit hidden offsets)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/secure_vs_baseline"))
@@ -135,7 +155,8 @@ def main():
     nonfinite = train(base, "baseline")
     ev = base.evaluate()
     xyz = base.model.xyz.detach().cpu().numpy()
-    rows["Scaffold-GS baseline"] = {"psnr_public": ev["psnr"], "ssim_public": ev["ssim"], "fps_public": ev["fps"],
+    rows["Scaffold-GS baseline"] = {"psnr_public": ev["psnr"], **public_psnr_by_region(base, scene),
+                                    "ssim_public": ev["ssim"], "fps_public": ev["fps"],
                                     "size_mb": release_mb(base), "anchors": ev["anchors"],
                                     "train_seconds": base.train_seconds, "nonfinite_steps": nonfinite,
                                     "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
@@ -156,7 +177,8 @@ def main():
         with torch.no_grad():
             fps_both = render_fps(both, cams, args.device)
         xyz = sec.model.xyz.detach().cpu().numpy()
-        rows[label] = {"psnr_public": ev["psnr"], "ssim_public": ev["ssim"], "fps_public": ev["fps"],
+        rows[label] = {"psnr_public": ev["psnr"], **public_psnr_by_region(sec, scene),
+                       "ssim_public": ev["ssim"], "fps_public": ev["fps"],
                        "fps_public_and_hidden": fps_both, "psnr_hidden": hid.get("psnr_hidden"),
                        "ssim_hidden": hid.get("ssim_hidden"), "bit_accuracy": hid.get("bit_accuracy"),
                        "size_mb": release_mb(sec), "anchors": ev["anchors"], "train_seconds": sec.train_seconds,

@@ -16,11 +16,13 @@ def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def render_view(model, heads, cam: Camera, background: torch.Tensor, *, camera_index: int | None = None,
-                offset_source=None, scaling_grad: bool = True, effects=None, **raster_options) -> dict:
+                offset_source=None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
+                effects=None, **raster_options) -> dict:
     """Decode ``model``'s anchors visible from ``cam`` with ``heads`` and rasterize them.
 
     offset_source: where the Gaussians sit (default: the stored public offsets; SecureGS's hidden
-    branch passes its private offset predictor). scaling_grad: see ``generate_neural_gaussians``.
+    branch passes its private offset predictor). feature_grad, scaling_grad: see
+    ``generate_neural_gaussians``.
     effects: an ``Effects`` whose rasterizer flags (antialiasing, depth) are added to ``raster_options``. Returns dict: ``image`` [H, W, 3], ``alpha``
     [H, W, 1], ``info`` (rasterize info), ``gaussians`` (generate_neural_gaussians output).
     """
@@ -33,7 +35,8 @@ def render_view(model, heads, cam: Camera, background: torch.Tensor, *, camera_i
     appearance = (camera_index or 0) if heads.appearance_dim else None
     extra = {"offset_source": offset_source} if offset_source is not None else {}
     g = generate_neural_gaussians(model, heads, camera_center_from_viewmat(viewmat), visible,
-                                  camera_index=appearance, scaling_grad=scaling_grad, **extra)
+                                  camera_index=appearance, feature_grad=feature_grad,
+                                  scaling_grad=scaling_grad, **extra)
     image, alpha, info = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], viewmat, K,
                                    cam.width, cam.height, background=background, **raster_options)
     return {"image": image, "alpha": alpha, "info": info, "gaussians": g}

@@ -191,24 +191,32 @@ def test_without_hdger_offsets_are_explicit_and_follow_growth(hidden_scene, tmp_
 
 
 def test_hidden_branch_switches(hidden_scene):
-    """λ overrides the payload's default; with hidden_scaling_grad=False the hidden loss reaches the
-    anchor features but never the public anchor scalings l_v."""
+    """λ overrides the payload's default; hidden_feature_grad / hidden_scaling_grad scale the share of
+    ℓ_hid's gradient that reaches the public anchor features f_v / scalings l_v (0: none), leaving
+    the render itself and the private heads' gradients unchanged."""
     config = TrainConfig(iterations=5, tile_size=8)
     with pytest.raises(ValueError, match="hidden_weight"):
         SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_weight=-1.0)
-    grads = {}
-    for scaling_grad in (True, False):
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_feature_grad=2.0)
+        trainer.render_hidden(hidden_scene.train[0], camera_index=0)
+    runs = {}
+    for factors in ((1.0, 1.0), (0.5, 0.0), (0.0, 0.5)):
         trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_weight=3.0,
-                                hidden_scaling_grad=scaling_grad)
+                                hidden_feature_grad=factors[0], hidden_scaling_grad=factors[1])
         assert trainer.payload.weight == 3.0
         out = trainer.render_hidden(hidden_scene.train[0], camera_index=0)
         trainer.image_loss(out, trainer.payload.views[0]).backward()
-        grads[scaling_grad] = (trainer.model.feat.grad, trainer.model.scaling.grad)
-    feat_grad, scaling_grad = grads[True]
-    assert feat_grad.abs().sum() > 0 and scaling_grad.abs().sum() > 0
-    feat_grad, scaling_grad = grads[False]
-    assert feat_grad.abs().sum() > 0
-    assert scaling_grad is None or scaling_grad.abs().sum() == 0
+        grad = lambda t: torch.zeros_like(t) if t.grad is None else t.grad  # noqa: E731
+        runs[factors] = (out["image"].detach(), grad(trainer.model.feat), grad(trainer.model.scaling),
+                         grad(trainer.private.offset_mlp[0].weight))
+    image, feat, scaling, private = runs[(1.0, 1.0)]
+    assert feat.abs().sum() > 0 and scaling.abs().sum() > 0
+    for (f, s), (img, feat_f, scaling_f, private_f) in runs.items():
+        assert torch.equal(img, image)  # same initialisation (seeded): same forward pass
+        torch.testing.assert_close(feat_f, f * feat, rtol=1e-4, atol=1e-9)
+        torch.testing.assert_close(scaling_f, s * scaling, rtol=1e-4, atol=1e-9)
+        torch.testing.assert_close(private_f, private, rtol=1e-4, atol=1e-9)
 
 
 @pytest.mark.parametrize("growth_at", ["hidden", "public"])

@@ -60,7 +60,8 @@ def generate_neural_gaussians(
     *,
     camera_index: int | None = None,
     offset_source: OffsetSource = stored_offsets,
-    scaling_grad: bool = True,
+    feature_grad: float = 1.0,
+    scaling_grad: float = 1.0,
 ) -> dict[str, torch.Tensor]:
     """Decode the visible anchors into the Gaussians of one view, exactly as Scaffold-GS does.
 
@@ -77,8 +78,10 @@ def generate_neural_gaussians(
         visible_mask: [N] bool, the anchors to decode (see :func:`visible_anchor_mask`); None: all.
         camera_index: camera row of the heads' appearance embedding, when they have one.
         offset_source: where the Gaussians sit relative to their anchor; default the stored offsets.
-        scaling_grad: let this decoding's loss reach the anchor scalings l_v. SecureGS's hidden pass
-            may read l_v without moving it, so that only the public loss shapes the public file.
+        feature_grad, scaling_grad: how much of this decoding's gradient reaches the anchor features
+            f_v and scalings l_v (1: all, 0: none, between: scaled; the forward pass is unchanged).
+            SecureGS's hidden pass reads these public attributes and may move them less than the
+            public pass does, so that the public file is shaped mainly by the public loss.
 
     Returns:
         dict with M kept Gaussians out of Nv * k decoded (Gaussian j of the i-th visible anchor is
@@ -108,10 +111,8 @@ def generate_neural_gaussians(
     ob_view = xyz - camera_center.to(xyz)
     ob_dist = ob_view.norm(dim=1, keepdim=True)
     ob_view = ob_view / ob_dist
-    feat = heads.blend_features(model.feat[anchor_index], ob_view, ob_dist)
-    scaling = torch.exp(model.scaling[anchor_index])
-    if not scaling_grad:
-        scaling = scaling.detach()
+    feat = heads.blend_features(scale_gradient(model.feat[anchor_index], feature_grad), ob_view, ob_dist)
+    scaling = torch.exp(scale_gradient(model.scaling[anchor_index], scaling_grad))
     inputs = AnchorViewInputs(anchor_index, xyz, feat, ob_view, ob_dist, scaling, model.offsets[anchor_index])
 
     neural_opacity, cov, color = heads(feat, ob_view, ob_dist, camera_index)
@@ -133,6 +134,19 @@ def generate_neural_gaussians(
         "mask": mask,
         "visible_mask": visible_mask,
     }
+
+
+def scale_gradient(x: torch.Tensor, factor: float) -> torch.Tensor:
+    """``x`` in the forward pass; its gradient multiplied by ``factor`` in the backward pass
+    (0: detached, 1: ``x`` itself)."""
+    factor = float(factor)
+    if not 0.0 <= factor <= 1.0:
+        raise ValueError(f"a gradient factor must lie in [0, 1], got {factor}")
+    if factor == 1.0:
+        return x
+    if factor == 0.0:
+        return x.detach()
+    return x.detach() + factor * (x - x.detach())
 
 
 def camera_center_from_viewmat(viewmat: torch.Tensor) -> torch.Tensor:

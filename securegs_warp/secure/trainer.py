@@ -24,16 +24,18 @@ class SecureTrainer(ScaffoldTrainer):
     """``private``: the key's heads; ``payload``: the hidden targets.
 
     hidden_weight: λ, overriding the payload's default (payload.HIDDEN_WEIGHT).
-    hidden_scaling_grad: let ℓ_hid move the anchor scalings l_v. They are public (stored in the
-        release) and scale the public offsets and Gaussians; with False only ℓ_ori shapes them and
-        the hidden branch reaches the public file through the anchor features alone.
+    hidden_feature_grad, hidden_scaling_grad: the share of ℓ_hid's gradient that reaches the
+        anchor features f_v and scalings l_v (1: all of it, as in the paper; 0: none). Both are
+        public (stored in the release) and shape the public Gaussians; below 1 the public loss
+        dominates them and the hidden branch leans more on its private heads.
     strategy_options: RegionAwareStrategy fields to override (r_down, hidden_every,
         hidden_growth_at, ...).
     """
 
     def __init__(self, scene: SceneData, config: TrainConfig, payload: PayloadSpec, device="cpu",
                  mode: str = "rdo", hdger: bool = True, hidden_weight: float | None = None,
-                 hidden_scaling_grad: bool = True, strategy_options: dict | None = None):
+                 hidden_feature_grad: float = 1.0, hidden_scaling_grad: float = 1.0,
+                 strategy_options: dict | None = None):
         options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
         strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
         super().__init__(scene, config, device=device, strategy=strategy)
@@ -42,7 +44,7 @@ class SecureTrainer(ScaffoldTrainer):
             if not hidden_weight >= 0.0:
                 raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
             self.payload.weight = float(hidden_weight)
-        self.hidden_scaling_grad = hidden_scaling_grad
+        self.hidden_feature_grad, self.hidden_scaling_grad = float(hidden_feature_grad), float(hidden_scaling_grad)
         self.private = PrivateHeads(self.heads, bits=payload.bits, offsets=hdger,
                                     hidden=self.payload.has_images).to(self.device)
         if self.private.decoder is not None and not hdger:
@@ -64,7 +66,8 @@ class SecureTrainer(ScaffoldTrainer):
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = self.private.hidden_offsets if self.private.offset_mlp is not None else self._explicit_offsets
         return self.render_branch(cam, self.private.decoder, self.payload.background, camera_index,
-                                  offset_source=source, scaling_grad=self.hidden_scaling_grad,
+                                  offset_source=source, feature_grad=self.hidden_feature_grad,
+                                  scaling_grad=self.hidden_scaling_grad,
                                   **raster_options)
 
     def _explicit_offsets(self, inputs) -> torch.Tensor:
