@@ -135,6 +135,9 @@ def main():
     ap.add_argument("--modes", default="rdo,scaffold",
                     help="SecureGS variants MODE[:lambda=X][:feature-grad=X][:scaling-grad=X][:FIELD=VALUE]: density modes rdo, scaffold (w/o "
                          "RDO), global, shared; no-hdger (RDO with explicit hidden offsets)")
+    ap.add_argument("--no-baseline", action="store_true",
+                    help="train only the SecureGS variants (e.g. when the baseline of the same scene and budget "
+                         "is already measured)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/secure_vs_baseline"))
     args = ap.parse_args()
@@ -151,18 +154,19 @@ def main():
     meta = {"device": device, "date": time.strftime("%Y-%m-%d"), "width": args.width, "height": args.height,
             "iterations": args.iterations, "hidden": args.hide, "payload": args.payload, "exposure_radius": radius}
 
-    base = ScaffoldTrainer(scene, config, device=args.device)
-    nonfinite = train(base, "baseline")
-    ev = base.evaluate()
-    xyz = base.model.xyz.detach().cpu().numpy()
-    rows["Scaffold-GS baseline"] = {"psnr_public": ev["psnr"], **public_psnr_by_region(base, scene),
-                                    "ssim_public": ev["ssim"], "fps_public": ev["fps"],
-                                    "size_mb": release_mb(base), "anchors": ev["anchors"],
-                                    "train_seconds": base.train_seconds, "nonfinite_steps": nonfinite,
-                                    "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
-    clouds["Scaffold-GS baseline"] = xyz
-    print(markdown_row("Scaffold-GS baseline", rows["Scaffold-GS baseline"]), flush=True)
-    write_report(out, meta, rows)
+    if not args.no_baseline:
+        base = ScaffoldTrainer(scene, config, device=args.device)
+        nonfinite = train(base, "baseline")
+        ev = base.evaluate()
+        xyz = base.model.xyz.detach().cpu().numpy()
+        rows["Scaffold-GS baseline"] = {"psnr_public": ev["psnr"], **public_psnr_by_region(base, scene),
+                                        "ssim_public": ev["ssim"], "fps_public": ev["fps"],
+                                        "size_mb": release_mb(base), "anchors": ev["anchors"],
+                                        "train_seconds": base.train_seconds, "nonfinite_steps": nonfinite,
+                                        "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
+        clouds["Scaffold-GS baseline"] = xyz
+        print(markdown_row("Scaffold-GS baseline", rows["Scaffold-GS baseline"]), flush=True)
+        write_report(out, meta, rows)
 
     for variant in args.modes.split(","):
         label, kwargs = parse_variant(variant)
@@ -174,8 +178,8 @@ def main():
         def both(cam):
             return sec.render(cam), sec.render_hidden(cam)
 
-        with torch.no_grad():
-            fps_both = render_fps(both, cams, args.device)
+        with torch.no_grad():  # a bit-only payload has no hidden render
+            fps_both = render_fps(both, cams, args.device) if sec.private.decoder is not None else None
         xyz = sec.model.xyz.detach().cpu().numpy()
         rows[label] = {"psnr_public": ev["psnr"], **public_psnr_by_region(sec, scene),
                        "ssim_public": ev["ssim"], "fps_public": ev["fps"],

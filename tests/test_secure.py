@@ -95,6 +95,24 @@ def test_bit_lengths_1_and_256(hidden_scene, length):
     assert trainer.evaluate_hidden()["bit_accuracy"] == 1.0
 
 
+def test_bits_are_read_from_the_anchor_features(hidden_scene):
+    """The bit head has no bias, so it cannot output the message as a constant of its own: blank
+    anchor features decode nothing, and the message is read from the features. Every anchor votes,
+    so it survives losing half of them (random pruning, as in the paper's robustness study)."""
+    config = TrainConfig(iterations=40, tile_size=8, densify=False)
+    trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("bits:64", seed=3))
+    for _ in range(config.iterations):
+        trainer.step()
+    bits, private = trainer.payload.bits.long(), trainer.private
+    feat = trainer.model.feat.detach()
+    assert torch.equal(private.decode_bits(feat), bits)
+    half = torch.randperm(feat.shape[0], generator=torch.Generator().manual_seed(0))[: feat.shape[0] // 2]
+    assert torch.equal(private.decode_bits(feat[half]), bits)
+    with torch.no_grad():
+        assert float(private.bit_logits(torch.zeros_like(feat)).abs().max()) == 0.0
+    assert not torch.equal(private.decode_bits(torch.zeros_like(feat)), bits)  # all zeros: bits has ones
+
+
 def test_release_is_plain_scaffold_gs_and_holds_no_private_tensor(trained, tmp_path):
     trainer, _ = trained
     public, key = save_container(tmp_path, trainer.model, trainer.heads, trainer.private, {"payload": "object"})
@@ -244,3 +262,18 @@ def test_hidden_anchors_grow_where_the_hidden_gaussians_are(hidden_scene, growth
         assert grown == 0 or float(distance.min()) > 20 * voxel
     assert state["hid_pos_accum"].shape == (model.num_anchors * model.n_offsets, 3)
     assert float(state["hid_pos_accum"][rows].abs().sum()) == 0.0  # reset with the gradient statistics
+
+
+@pytest.mark.parametrize("per_lambda", [True, False])
+def test_hidden_gradient_statistic_is_per_unit_of_hidden_loss(hidden_scene, per_lambda):
+    """∇_hid divides out λ by default, so Γ_hid grows from the hidden image's own error whatever the
+    payload's weight; hidden_grad_per_lambda=False accumulates λ·∇ (Algorithm 1's ∇ℓ_total)."""
+    accum = {}
+    for weight in (1.0, 10.0):
+        trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"),
+                                hidden_weight=weight,
+                                strategy_options={"hidden_every": 1, "hidden_grad_per_lambda": per_lambda})
+        trainer.step()
+        accum[weight] = trainer.strategy_state["hid_grad_accum"]
+    assert accum[1.0].sum() > 0
+    torch.testing.assert_close(accum[10.0], accum[1.0] * (1.0 if per_lambda else 10.0), rtol=1e-3, atol=1e-9)

@@ -24,13 +24,15 @@ import torch
 from torch import nn
 
 
-def make_mlp(in_dim: int, hidden_dim: int, out_dim: int, activation: nn.Module | None = None) -> nn.Sequential:
-    """Scaffold-GS's two-layer head: Linear, ReLU, Linear, then ``activation`` if given.
+def make_mlp(in_dim: int, hidden_dim: int, out_dim: int, activation: nn.Module | None = None,
+             bias: bool = True) -> nn.Sequential:
+    """Scaffold-GS's two-layer head: Linear, ReLU, Linear, then ``activation`` if given (``bias``:
+    whether the Linear layers have biases).
 
     The Linear layers are modules ``0`` and ``2``, so state-dict keys are ``0.weight``, ``0.bias``,
     ``2.weight``, ``2.bias`` whatever the activation, as in Scaffold-GS's files.
     """
-    layers = [nn.Linear(in_dim, hidden_dim), nn.ReLU(True), nn.Linear(hidden_dim, out_dim)]
+    layers = [nn.Linear(in_dim, hidden_dim, bias=bias), nn.ReLU(True), nn.Linear(hidden_dim, out_dim, bias=bias)]
     if activation is not None:
         layers.append(activation)
     return nn.Sequential(*layers)

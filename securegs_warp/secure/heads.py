@@ -19,8 +19,12 @@ class PrivateHeads(nn.Module):
         (the paper's hybrid decoupled Gaussian encryption, HDGER). ``None`` in the "w/o HDGER"
         ablation, where the anchors carry explicit hidden offsets instead
         (``AnchorModel.hidden_offsets``; measured by the training scripts, not saved in a release).
-    bit_mlp (F_b†): Linear(d, d), ReLU, Linear(d, L) — per-anchor bit logits; the message is the
-        average over anchors (each anchor votes).
+    bit_mlp (F_b†): Linear(d, d), ReLU, Linear(d, L), both without bias — per-anchor bit logits;
+        the message is the average over anchors (each anchor votes). Without biases the head cannot
+        learn the message as a constant of its own (F_b†(0) = 0): it is read from the features.
+        It is not a watermark test, though: features trained on the same scene without the
+        message can decode it too (seen on a small scene), since the head maps what such features
+        have in common to the message.
     scale_offsets: hidden offsets are in units of the anchor's offset scale exp(l_v[:3]), as the
         public offsets are. The paper writes x_v + F_o†(...) without l_v; scaling keeps the MLP's
         output range independent of the scene's size and of the anchor's voxel level, which is what
@@ -36,7 +40,7 @@ class PrivateHeads(nn.Module):
                                      add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
                                      add_color_dist=public.add_color_dist) if hidden else None
         self.offset_mlp = make_mlp(d + 3, d, 3 * k) if hidden and offsets else None
-        self.bit_mlp = make_mlp(d, d, bits) if bits > 0 else None
+        self.bit_mlp = make_mlp(d, d, bits, bias=False) if bits > 0 else None
 
     @property
     def n_bits(self) -> int:

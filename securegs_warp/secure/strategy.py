@@ -38,6 +38,13 @@ class RegionAwareStrategy(ScaffoldStrategy):
     dbscan_eps_voxels: float = 12.0  # DBSCAN radius in base voxels
     dbscan_min_samples: int = 8
     hidden_growth_at: str = "hidden"  # where Γ_hid anchors are placed: "hidden" or "public" positions
+    # The hidden render's gradients come from λ·ℓ_hid. Divided by λ (the trainer sets it), ∇_hid
+    # measures the hidden image's own error, so τ_fix means the same for both branches and for
+    # every payload (λ is 10 for objects, 0.1 for an image: undivided, an object grows ten times the
+    # hidden anchors a public Gaussian with the same error would, and an image almost none).
+    # hidden_grad_per_lambda=False accumulates λ·∇ as Algorithm 1 writes it (∇ℓ_total).
+    hidden_grad_per_lambda: bool = True
+    hidden_weight: float = 1.0  # λ, set by SecureTrainer
     anchor_state_keys = ScaffoldStrategy.anchor_state_keys + ("is_hidden",)
 
     def __post_init__(self):
@@ -70,10 +77,12 @@ class RegionAwareStrategy(ScaffoldStrategy):
             # Opacity: an anchor that only serves the hidden branch is still useful.
             opacity = g_hid["neural_opacity"].detach().clamp_min(0.0).view(-1, k).sum(dim=1)
             state["opacity_accum"][g_hid["visible_mask"]] += opacity
+            scale = 1.0 / self.hidden_weight if self.hidden_grad_per_lambda and self.hidden_weight > 0 else 1.0
             if self.mode in ("scaffold", "shared"):  # one gradient for both branches, every step
-                self.accumulate(state, g_hid, info_hid, k, opacity=False)
+                self.accumulate(state, g_hid, info_hid, k, opacity=False, grad_scale=scale)
             elif step % self.hidden_every == 0:  # ∇_hid, accumulated more slowly
-                rows, rendered = self.accumulate(state, g_hid, info_hid, k, prefix="hid_", opacity=False)
+                rows, rendered = self.accumulate(state, g_hid, info_hid, k, prefix="hid_", opacity=False,
+                                                 grad_scale=scale)
                 state["hid_pos_accum"][rows] += g_hid["means"].detach()[rendered]
         if step > self.update_from and step % self.update_interval == 0:
             return self.adjust(model, optimizer, state, generator)

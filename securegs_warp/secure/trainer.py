@@ -36,14 +36,15 @@ class SecureTrainer(ScaffoldTrainer):
                  mode: str = "rdo", hdger: bool = True, hidden_weight: float | None = None,
                  hidden_feature_grad: float = 1.0, hidden_scaling_grad: float = 1.0,
                  strategy_options: dict | None = None):
+        if hidden_weight is not None and not hidden_weight >= 0.0:
+            raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
         options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
         strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
         super().__init__(scene, config, device=device, strategy=strategy)
         self.payload = build_payload(payload, scene, self.device)
         if hidden_weight is not None:
-            if not hidden_weight >= 0.0:
-                raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
             self.payload.weight = float(hidden_weight)
+        strategy.hidden_weight = self.payload.weight  # ∇_hid per unit of ℓ_hid (RegionAwareStrategy)
         self.hidden_feature_grad, self.hidden_scaling_grad = float(hidden_feature_grad), float(hidden_scaling_grad)
         self.private = PrivateHeads(self.heads, bits=payload.bits, offsets=hdger,
                                     hidden=self.payload.has_images).to(self.device)

@@ -63,12 +63,13 @@ class ScaffoldStrategy:
     @staticmethod
     @torch.no_grad()
     def accumulate(state: dict, gaussians: dict, info: dict, k: int, prefix: str = "",
-                   opacity: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+                   opacity: bool = True, grad_scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
         """Add one view's statistics (Scaffold-GS ``training_statis``).
 
         gaussians: the output of ``generate_neural_gaussians`` for the view; info: the matching
         ``rasterize`` info after backward. ``prefix`` selects a second set of gradient statistics
-        (SecureGS keeps one per branch); ``opacity`` also counts the view in the opacity statistics.
+        (SecureGS keeps one per branch); ``opacity`` also counts the view in the opacity statistics;
+        ``grad_scale`` multiplies the gradient norms (SecureGS divides out its loss weight λ).
         Returns (rows [N·k] bool: the neural Gaussians counted, rendered [M] bool: which of the
         view's M kept Gaussians they are), for statistics a subclass adds alongside.
         """
@@ -84,7 +85,7 @@ class ScaffoldStrategy:
         rows[kept] = rendered
         # 3DGS measures the mean's gradient in NDC: d/d ndc = d/d pixel · (W/2, H/2).
         scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=rows.device)
-        state[prefix + "grad_accum"][rows] += (info["means2d_grad"][rendered] * scale).norm(dim=1)
+        state[prefix + "grad_accum"][rows] += grad_scale * (info["means2d_grad"][rendered] * scale).norm(dim=1)
         state[prefix + "grad_denom"][rows] += 1
         return rows, rendered
 
