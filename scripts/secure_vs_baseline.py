@@ -69,7 +69,9 @@ def public_psnr_by_region(trainer, scene) -> dict:
         for name, mask in (("on", on), ("off", ~on)):
             sums[name][0] += float(err[mask].sum())
             sums[name][1] += int(mask.sum())
-    return {f"psnr_public_{name}_hidden": -10.0 * np.log10(total / max(count, 1)) if total > 0 else float("inf")
+    # None: the region is empty (a hidden scene covers every pixel); inf: rendered exactly.
+    return {f"psnr_public_{name}_hidden": None if count == 0 else
+            (-10.0 * np.log10(total / count) if total > 0 else float("inf"))
             for name, (total, count) in sums.items()}
 
 
