@@ -40,8 +40,8 @@ from securegs_warp.secure.security import exposure, plot_anchor_clouds
 from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
 
 
-COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
-           "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
+COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
+           "ssim_hidden", "bit_accuracy", "fps_public", "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
 
 
 def train(trainer, label):

@@ -30,7 +30,8 @@ def make_mlp(in_dim: int, hidden_dim: int, out_dim: int, activation: nn.Module |
     whether the Linear layers have biases).
 
     The Linear layers are modules ``0`` and ``2``, so state-dict keys are ``0.weight``, ``0.bias``,
-    ``2.weight``, ``2.bias`` whatever the activation, as in Scaffold-GS's files.
+    ``2.weight``, ``2.bias`` (no ``.bias`` keys without biases) whatever the activation, as in
+    Scaffold-GS's files.
     """
     layers = [nn.Linear(in_dim, hidden_dim, bias=bias), nn.ReLU(True), nn.Linear(hidden_dim, out_dim, bias=bias)]
     if activation is not None:
