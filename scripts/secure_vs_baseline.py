@@ -54,25 +54,35 @@ def train(trainer, label):
     return nonfinite
 
 
-@torch.no_grad()
-def public_psnr_by_region(trainer, scene) -> dict:
+class RegionErrors:
     """Public held-out PSNR outside and inside the hidden object's footprint (its alpha in each test
     view, dilated by 1% of the width): where the cover scene loses fidelity to the hidden branch.
-    PSNR of the squared error pooled over all views' pixels of the region."""
-    sums = {"off": [0.0, 0], "on": [0.0, 0]}
-    for cam in scene.test:
-        image = trainer.render(cam)["image"].clamp(0, 1)
+    Fed by ``trainer.evaluate(on_render=...)`` with the renders it makes anyway; PSNR of the squared
+    error pooled over all views' pixels of the region."""
+
+    def __init__(self):
+        self.sums = {"off": [0.0, 0], "on": [0.0, 0]}
+
+    def __call__(self, cam, image):
         err = ((image - torch.as_tensor(cam.image, device=image.device)) ** 2).mean(dim=-1)
         alpha = torch.as_tensor(cam.hidden_alpha[..., 0], device=image.device)
         r = max(1, cam.width // 100)
         on = torch.nn.functional.max_pool2d((alpha > 0.01).float()[None, None], 2 * r + 1, 1, r)[0, 0] > 0
         for name, mask in (("on", on), ("off", ~on)):
-            sums[name][0] += float(err[mask].sum())
-            sums[name][1] += int(mask.sum())
-    # None: the region is empty (a hidden scene covers every pixel); inf: rendered exactly.
-    return {f"psnr_public_{name}_hidden": None if count == 0 else
-            (-10.0 * np.log10(total / count) if total > 0 else float("inf"))
-            for name, (total, count) in sums.items()}
+            self.sums[name][0] += float(err[mask].sum())
+            self.sums[name][1] += int(mask.sum())
+
+    def psnr(self) -> dict:
+        # None: the region is empty (a hidden scene covers every pixel); inf: rendered exactly.
+        return {f"psnr_public_{name}_hidden": None if count == 0 else
+                (-10.0 * np.log10(total / count) if total > 0 else float("inf"))
+                for name, (total, count) in self.sums.items()}
+
+
+def evaluate_public(trainer) -> dict:
+    """trainer.evaluate() plus the public PSNR outside/inside the hidden footprint (RegionErrors)."""
+    regions = RegionErrors()
+    return {**trainer.evaluate(on_render=regions), **regions.psnr()}
 
 
 def markdown_row(label, r) -> str:
@@ -159,9 +169,10 @@ def main():
     if not args.no_baseline:
         base = ScaffoldTrainer(scene, config, device=args.device)
         nonfinite = train(base, "baseline")
-        ev = base.evaluate()
+        ev = evaluate_public(base)
         xyz = base.model.xyz.detach().cpu().numpy()
-        rows["Scaffold-GS baseline"] = {"psnr_public": ev["psnr"], **public_psnr_by_region(base, scene),
+        rows["Scaffold-GS baseline"] = {"psnr_public": ev["psnr"],
+                                        **{k: v for k, v in ev.items() if k.startswith("psnr_public_")},
                                         "ssim_public": ev["ssim"], "fps_public": ev["fps"],
                                         "size_mb": release_mb(base), "anchors": ev["anchors"],
                                         "train_seconds": base.train_seconds, "nonfinite_steps": nonfinite,
@@ -174,7 +185,7 @@ def main():
         label, kwargs = parse_variant(variant)
         sec = SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device, **kwargs)
         nonfinite = train(sec, label)
-        ev, hid = sec.evaluate(), sec.evaluate_hidden()
+        ev, hid = evaluate_public(sec), sec.evaluate_hidden()
         cams = scene.test
 
         def both(cam):
@@ -183,7 +194,8 @@ def main():
         with torch.no_grad():  # a bit-only payload has no hidden render
             fps_both = render_fps(both, cams, args.device) if sec.private.decoder is not None else None
         xyz = sec.model.xyz.detach().cpu().numpy()
-        rows[label] = {"psnr_public": ev["psnr"], **public_psnr_by_region(sec, scene),
+        rows[label] = {"psnr_public": ev["psnr"],
+                       **{k: v for k, v in ev.items() if k.startswith("psnr_public_")},
                        "ssim_public": ev["ssim"], "fps_public": ev["fps"],
                        "fps_public_and_hidden": fps_both, "psnr_hidden": hid.get("psnr_hidden"),
                        "ssim_hidden": hid.get("ssim_hidden"), "bit_accuracy": hid.get("bit_accuracy"),
