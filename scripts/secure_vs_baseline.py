@@ -16,7 +16,8 @@ A variant is ``MODE[:OPTION]...``: the density mode (or no-hdger), then any of `
 overriding the payload's default), ``feature-grad=X`` and ``scaling-grad=X`` (the share of ℓ_hid's
 gradient reaching the public anchor features f_v and scalings l_v, 0 to 1:
 ``SecureTrainer(hidden_feature_grad=, hidden_scaling_grad=)``) and ``FIELD=VALUE`` for a field of
-``RegionAwareStrategy`` (``r_down=16``, ``hidden_every=4``, ``hidden_growth_at=public``: Γ_hid
+``RegionAwareStrategy`` (``r_down=16``, ``hidden_every=4``, ``hidden_tau_scale=inf``: no Γ_hid,
+``hidden_opacity_keeps=false``: prune by the public opacity alone, ``hidden_growth_at=public``: Γ_hid
 anchors at the public offsets' positions, this project's placement before 2026-11-22).
 """
 import argparse

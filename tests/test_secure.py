@@ -277,3 +277,32 @@ def test_hidden_gradient_statistic_is_per_unit_of_hidden_loss(hidden_scene, per_
         accum[weight] = trainer.strategy_state["hid_grad_accum"]
     assert accum[1.0].sum() > 0
     torch.testing.assert_close(accum[10.0], accum[1.0] * (1.0 if per_lambda else 10.0), rtol=1e-3, atol=1e-9)
+
+
+@pytest.mark.parametrize("tau_scale", [1.0, 1e4])
+def test_hidden_growth_threshold_scale(hidden_scene, tau_scale):
+    """Γ_hid grows at τ_fix · hidden_tau_scale: a mean ∇_hid of 1 grows anchors at the paper's
+    τ_fix and none at τ_fix · 10⁴ = 2; values below 1 are refused."""
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"),
+                            strategy_options={"hidden_tau_scale": tau_scale})
+    state, rows, views = trainer.strategy_state, slice(0, 8 * trainer.model.n_offsets), 100.0
+    state["hid_grad_denom"][rows] = views
+    state["hid_grad_accum"][rows] = views
+    changed = trainer.strategy.adjust(trainer.model, trainer.optimizer, state, trainer.generator)
+    assert (changed["grown_hidden"] > 0) == (tau_scale == 1.0)
+    assert changed["hidden_anchors"] == changed["grown_hidden"]
+    with pytest.raises(ValueError, match="hidden_tau_scale"):
+        SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"),
+                      strategy_options={"hidden_tau_scale": 0.5})
+
+
+def test_hidden_opacity_in_pruning_statistic_is_switchable(hidden_scene):
+    """By default the hidden Gaussians' opacity counts toward keeping an anchor; with
+    hidden_opacity_keeps=False pruning sees the public opacity alone (same first step otherwise)."""
+    accum = {}
+    for keeps in (True, False):
+        trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"),
+                                strategy_options={"hidden_opacity_keeps": keeps})
+        trainer.step()
+        accum[keeps] = trainer.strategy_state["opacity_accum"]
+    assert (accum[True] >= accum[False]).all() and accum[True].sum() > accum[False].sum()

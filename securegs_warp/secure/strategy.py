@@ -38,6 +38,12 @@ class RegionAwareStrategy(ScaffoldStrategy):
     dbscan_eps_voxels: float = 12.0  # DBSCAN radius in base voxels
     dbscan_min_samples: int = 8
     hidden_growth_at: str = "hidden"  # where Γ_hid anchors are placed: "hidden" or "public" positions
+    # Γ_hid grows at τ_fix · hidden_tau_scale (the paper: 1). Above 1 fewer anchors serve only the
+    # hidden object: less of its shape in the release, less hidden fidelity; inf: no Γ_hid at all.
+    hidden_tau_scale: float = 1.0
+    # The hidden Gaussians' opacity counts in the pruning statistic (an anchor that serves only the
+    # hidden branch is kept); False prunes by the public opacity alone, as Scaffold-GS.
+    hidden_opacity_keeps: bool = True
     # The hidden render's gradients come from λ·ℓ_hid. Divided by λ (the trainer sets it), ∇_hid
     # measures the hidden image's own error, so τ_fix means the same for both branches and for
     # every payload (λ is 10 for objects, 0.1 for an image: undivided, an object grows ten times the
@@ -54,6 +60,8 @@ class RegionAwareStrategy(ScaffoldStrategy):
             raise ValueError(f"r_down must be >= 1 (it divides the growth threshold), got {self.r_down}")
         if self.hidden_every < 1:
             raise ValueError(f"hidden_every must be >= 1, got {self.hidden_every}")
+        if not self.hidden_tau_scale >= 1.0:
+            raise ValueError(f"hidden_tau_scale must be >= 1 (it multiplies τ_fix), got {self.hidden_tau_scale}")
         if self.hidden_growth_at not in ("hidden", "public"):
             raise ValueError(f"hidden_growth_at must be 'hidden' or 'public', got {self.hidden_growth_at!r}")
 
@@ -74,9 +82,9 @@ class RegionAwareStrategy(ScaffoldStrategy):
         self.accumulate(state, gaussians, info, k)
         if hidden is not None:
             g_hid, info_hid = hidden
-            # Opacity: an anchor that only serves the hidden branch is still useful.
-            opacity = g_hid["neural_opacity"].detach().clamp_min(0.0).view(-1, k).sum(dim=1)
-            state["opacity_accum"][g_hid["visible_mask"]] += opacity
+            if self.hidden_opacity_keeps:  # an anchor that only serves the hidden branch is still useful
+                opacity = g_hid["neural_opacity"].detach().clamp_min(0.0).view(-1, k).sum(dim=1)
+                state["opacity_accum"][g_hid["visible_mask"]] += opacity
             scale = 1.0 / self.hidden_weight if self.hidden_grad_per_lambda and self.hidden_weight > 0 else 1.0
             if self.mode in ("scaffold", "shared"):  # one gradient for both branches, every step
                 self.accumulate(state, g_hid, info_hid, k, opacity=False, grad_scale=scale)
@@ -139,7 +147,8 @@ class RegionAwareStrategy(ScaffoldStrategy):
         grown_hid = 0
         if self.mode != "scaffold":
             n_before = model.num_anchors
-            grown_hid = self.grow(model, optimizer, state, prefix="hid_", threshold=self.grad_threshold,
+            grown_hid = self.grow(model, optimizer, state, prefix="hid_",
+                                  threshold=self.grad_threshold * self.hidden_tau_scale,
                                   generator=generator, positions=self.hidden_positions(model, state))
             state["is_hidden"][n_before:] = 1.0
         pruned = self.prune(model, optimizer, state)
