@@ -215,9 +215,9 @@ def test_hidden_branch_switches(hidden_scene):
     config = TrainConfig(iterations=5, tile_size=8)
     with pytest.raises(ValueError, match="hidden_weight"):
         SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_weight=-1.0)
-    with pytest.raises(ValueError, match=r"\[0, 1\]"):
-        trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_feature_grad=2.0)
-        trainer.render_hidden(hidden_scene.train[0], camera_index=0)
+    for name in ("hidden_feature_grad", "hidden_scaling_grad"):  # refused before any training
+        with pytest.raises(ValueError, match=name + r" must lie in \[0, 1\]"):
+            SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), **{name: 2.0})
     runs = {}
     for factors in ((1.0, 1.0), (0.5, 0.0), (0.0, 0.5)):
         trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_weight=3.0,
