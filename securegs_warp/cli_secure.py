@@ -41,12 +41,14 @@ def cmd_hide(args) -> int:
                          tile_size=args.tile_size or (8 if device == "cpu" else 16))
     record = {"scene": dataclasses.asdict(spec), "train": config.to_dict(), "payload": payload.describe(),
               "mode": args.mode, "hidden_weight": args.hidden_weight, "r_down": args.r_down,
-              "hidden_every": args.hidden_every, "feature_grad": args.feature_grad}
+              "hidden_every": args.hidden_every, "hidden_tau_scale": args.hidden_tau_scale,
+              "feature_grad": args.feature_grad}
     resume = prepare_run(run, record, args)
     passphrase = _passphrase(args)  # fail before training, not after
     trainer = SecureTrainer(spec.load(), config, payload, device=device, mode=args.mode,
                             hidden_weight=args.hidden_weight, hidden_feature_grad=args.feature_grad,
-                            strategy_options={"r_down": args.r_down, "hidden_every": args.hidden_every})
+                            strategy_options={"r_down": args.r_down, "hidden_every": args.hidden_every,
+                                              "hidden_tau_scale": args.hidden_tau_scale})
     return start_training(trainer, run, record, resume, args,
                           finish=lambda: finish_container(trainer, run, spec, passphrase))
 
@@ -171,6 +173,9 @@ def add_secure_parsers(sub, add_scene_arguments, add_training_arguments) -> None
                         "(more public anchors there mask the hidden ones; the paper's 4)")
     p.add_argument("--hidden-every", type=int, default=2,
                    help="RDO: accumulate ∇_hid every N steps (larger grows fewer hidden-only anchors)")
+    p.add_argument("--hidden-tau-scale", type=float, default=1.0,
+                   help="RDO: anchors serving only the hidden payload grow at τ_fix times this (the paper's 1; "
+                        "larger shows less of a hidden object's shape in the release and renders it less well)")
     p.add_argument("--feature-grad", type=float, default=HIDDEN_FEATURE_GRAD,
                    help="share of the hidden loss's gradient reaching the public anchor features, 0 < X <= 1 "
                         f"(default {HIDDEN_FEATURE_GRAD}: the cover stays closer to plain Scaffold-GS; the paper's 1)")

@@ -166,8 +166,14 @@ def test_exposure_measures_anchors_tracing_the_hidden_surface():
 def test_cli_hide_reveal_demo(tmp_path, monkeypatch):
     out = tmp_path / "c"
     monkeypatch.setenv("KEYPASS", "correct horse")
+    bad = ["hide", "--out", str(tmp_path / "bad"), "--iterations", "2", "--quiet", "--payload", "object", *TINY]
+    assert main(bad + ["--feature-grad", "2"]) == 2
+    assert main(bad + ["--hidden-tau-scale", "0.5"]) == 2
+    assert not (tmp_path / "bad").exists()  # refused before the run folder is written
     assert main(["hide", "--out", str(out), "--iterations", "12", "--quiet", "--payload", "object+bits:8",
-                 "--passphrase-env", "KEYPASS", *TINY]) == 0
+                 "--passphrase-env", "KEYPASS", "--hidden-tau-scale", "4", "--feature-grad", "0.5", *TINY]) == 0
+    record = json.loads((out / "config.json").read_text())
+    assert (record["hidden_tau_scale"], record["feature_grad"]) == (4.0, 0.5)
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
                 "fps_hidden", "size_mb_public", "train_seconds"):
