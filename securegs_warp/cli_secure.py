@@ -170,14 +170,15 @@ def add_secure_parsers(sub, add_scene_arguments, add_training_arguments) -> None
                         "scene); lower keeps the cover scene closer to a plain Scaffold-GS model")
     p.add_argument("--r-down", type=float, default=4.0,
                    help="RDO: the public growth threshold is divided by this inside the hidden object's box "
-                        "(more public anchors there mask the hidden ones; the paper's 4)")
+                        "(more public anchors there mask the hidden ones; the paper's 4); everywhere with "
+                        "--mode global")
     p.add_argument("--hidden-every", type=int, default=2,
                    help="RDO: accumulate ∇_hid every N steps (larger grows fewer hidden-only anchors)")
     p.add_argument("--hidden-tau-scale", type=float, default=1.0,
                    help="RDO: anchors serving only the hidden payload grow at τ_fix times this (the paper's 1; "
                         "larger shows less of a hidden object's shape in the release and renders it less well)")
     p.add_argument("--feature-grad", type=float, default=HIDDEN_FEATURE_GRAD,
-                   help="share of the hidden loss's gradient reaching the public anchor features, 0 < X <= 1 "
+                   help="share of the hidden loss's gradient reaching the public anchor features, 0 to 1 "
                         f"(default {HIDDEN_FEATURE_GRAD}: the cover stays closer to plain Scaffold-GS; the paper's 1)")
     p.add_argument("--passphrase-env", help="seal the key with the passphrase in this environment variable")
     p.set_defaults(func=cmd_hide)

@@ -4,5 +4,5 @@ from .payload import Payload, PayloadSpec, build_payload
 from .strategy import MODES, RegionAwareStrategy
 from .trainer import HIDDEN_FEATURE_GRAD, SecureTrainer
 
-__all__ = ["HIDDEN_FEATURE_GRAD", "MODES", "Payload", "PayloadSpec", "PrivateHeads", "RegionAwareStrategy", "SecureTrainer",
-           "build_payload"]
+__all__ = ["HIDDEN_FEATURE_GRAD", "MODES", "Payload", "PayloadSpec", "PrivateHeads", "RegionAwareStrategy",
+           "SecureTrainer", "build_payload"]
