@@ -151,6 +151,8 @@ def main():
     ap.add_argument("--no-baseline", action="store_true",
                     help="train only the SecureGS variants (e.g. when the baseline of the same scene and budget "
                          "is already measured)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="training seed (MLP initialisation, view order, growth draws); the scene stays the same")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/secure_vs_baseline"))
     args = ap.parse_args()
@@ -160,12 +162,12 @@ def main():
     tile = 8 if args.device == "cpu" else 16
     scene = make_synthetic_scene(hidden=args.hide, level="object", width=args.width, height=args.height,
                                  n_train=args.train_views, n_test=args.test_views, device=args.device)
-    config = TrainConfig(iterations=args.iterations, tile_size=tile)
+    config = TrainConfig(iterations=args.iterations, tile_size=tile, seed=args.seed)
     radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0)))
     rows, clouds = {}, {}
     device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
     meta = {"device": device, "date": time.strftime("%Y-%m-%d"), "width": args.width, "height": args.height,
-            "iterations": args.iterations, "hidden": args.hide, "payload": args.payload, "exposure_radius": radius}
+            "iterations": args.iterations, "seed": args.seed, "hidden": args.hide, "payload": args.payload, "exposure_radius": radius}
 
     if not args.no_baseline:
         base = ScaffoldTrainer(scene, config, device=args.device)
