@@ -42,7 +42,8 @@ from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
 
 
 COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
-           "ssim_hidden", "bit_accuracy", "fps_public", "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
+           "ssim_hidden", "bit_accuracy", "fps_public", "fps_public_and_hidden", "size_mb", "anchors",
+           "train_seconds", "nonfinite_steps")
 
 
 def train(trainer, label):
@@ -80,10 +81,15 @@ class RegionErrors:
                 for name, (total, count) in self.sums.items()}
 
 
-def evaluate_public(trainer) -> dict:
-    """trainer.evaluate() plus the public PSNR outside/inside the hidden footprint (RegionErrors)."""
+def public_row(trainer, nonfinite: int, scene, radius: float) -> dict:
+    """The columns every model has: public held-out metrics (with RegionErrors' PSNR outside/inside
+    the hidden footprint), release size, anchors, training time, and the anchor cloud's exposure."""
     regions = RegionErrors()
-    return {**trainer.evaluate(on_render=regions), **regions.psnr()}
+    ev = trainer.evaluate(on_render=regions)
+    xyz = trainer.model.xyz.detach().cpu().numpy()
+    return {"psnr_public": ev["psnr"], **regions.psnr(), "ssim_public": ev["ssim"], "fps_public": ev["fps"],
+            "size_mb": release_mb(trainer), "anchors": ev["anchors"], "train_seconds": trainer.train_seconds,
+            "nonfinite_steps": nonfinite, "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
 
 
 def markdown_row(label, r) -> str:
@@ -167,20 +173,14 @@ def main():
     rows, clouds = {}, {}
     device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
     meta = {"device": device, "date": time.strftime("%Y-%m-%d"), "width": args.width, "height": args.height,
-            "iterations": args.iterations, "seed": args.seed, "hidden": args.hide, "payload": args.payload, "exposure_radius": radius}
+            "iterations": args.iterations, "seed": args.seed, "hidden": args.hide, "payload": args.payload,
+            "exposure_radius": radius}
 
     if not args.no_baseline:
         base = ScaffoldTrainer(scene, config, device=args.device)
         nonfinite = train(base, "baseline")
-        ev = evaluate_public(base)
-        xyz = base.model.xyz.detach().cpu().numpy()
-        rows["Scaffold-GS baseline"] = {"psnr_public": ev["psnr"],
-                                        **{k: v for k, v in ev.items() if k.startswith("psnr_public_")},
-                                        "ssim_public": ev["ssim"], "fps_public": ev["fps"],
-                                        "size_mb": release_mb(base), "anchors": ev["anchors"],
-                                        "train_seconds": base.train_seconds, "nonfinite_steps": nonfinite,
-                                        "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
-        clouds["Scaffold-GS baseline"] = xyz
+        rows["Scaffold-GS baseline"] = public_row(base, nonfinite, scene, radius)
+        clouds["Scaffold-GS baseline"] = base.model.xyz.detach().cpu().numpy()
         print(markdown_row("Scaffold-GS baseline", rows["Scaffold-GS baseline"]), flush=True)
         write_report(out, meta, rows)
 
@@ -188,7 +188,7 @@ def main():
         label, kwargs = parse_variant(variant)
         sec = SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device, **kwargs)
         nonfinite = train(sec, label)
-        ev, hid = evaluate_public(sec), sec.evaluate_hidden()
+        hid = sec.evaluate_hidden()
         cams = scene.test
 
         def both(cam):
@@ -196,16 +196,11 @@ def main():
 
         with torch.no_grad():  # a bit-only payload has no hidden render
             fps_both = render_fps(both, cams, args.device) if sec.private.decoder is not None else None
-        xyz = sec.model.xyz.detach().cpu().numpy()
-        rows[label] = {"psnr_public": ev["psnr"],
-                       **{k: v for k, v in ev.items() if k.startswith("psnr_public_")},
-                       "ssim_public": ev["ssim"], "fps_public": ev["fps"],
-                       "fps_public_and_hidden": fps_both, "psnr_hidden": hid.get("psnr_hidden"),
-                       "ssim_hidden": hid.get("ssim_hidden"), "bit_accuracy": hid.get("bit_accuracy"),
-                       "size_mb": release_mb(sec), "anchors": ev["anchors"], "train_seconds": sec.train_seconds,
-                       "hidden_anchors": int(sec.strategy_state["is_hidden"].sum()), "nonfinite_steps": nonfinite,
-                       "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
-        clouds[label] = xyz
+        rows[label] = {**public_row(sec, nonfinite, scene, radius), "fps_public_and_hidden": fps_both,
+                       "psnr_hidden": hid.get("psnr_hidden"), "ssim_hidden": hid.get("ssim_hidden"),
+                       "bit_accuracy": hid.get("bit_accuracy"),
+                       "hidden_anchors": int(sec.strategy_state["is_hidden"].sum())}
+        clouds[label] = sec.model.xyz.detach().cpu().numpy()
         print(markdown_row(label, rows[label]), flush=True)
         write_report(out, meta, rows)
 

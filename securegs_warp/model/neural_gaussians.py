@@ -136,12 +136,18 @@ def generate_neural_gaussians(
     }
 
 
+def gradient_share(name: str, value: float) -> float:
+    """``value`` as a float if it lies in [0, 1] (a share of a gradient); a ValueError naming it otherwise."""
+    value = float(value)
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must lie in [0, 1] (a share of a gradient), got {value}")
+    return value
+
+
 def scale_gradient(x: torch.Tensor, factor: float) -> torch.Tensor:
     """``x`` in the forward pass; its gradient multiplied by ``factor`` in the backward pass
     (0: detached, 1: ``x`` itself)."""
-    factor = float(factor)
-    if not 0.0 <= factor <= 1.0:
-        raise ValueError(f"a gradient factor must lie in [0, 1], got {factor}")
+    factor = gradient_share("a gradient factor", factor)
     if factor == 1.0:
         return x
     if factor == 0.0:

@@ -13,6 +13,7 @@ import torch.nn.functional as F
 
 from ..data import Camera, SceneData
 from .. import evaluation
+from ..model.neural_gaussians import gradient_share
 from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer, TrainConfig
 from .heads import PrivateHeads
@@ -46,9 +47,9 @@ class SecureTrainer(ScaffoldTrainer):
                  strategy_options: dict | None = None):
         if hidden_weight is not None and not hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
-        for name, share in (("hidden_feature_grad", hidden_feature_grad), ("hidden_scaling_grad", hidden_scaling_grad)):
-            if not 0.0 <= share <= 1.0:
-                raise ValueError(f"{name} must lie in [0, 1] (a share of the hidden loss's gradient), got {share}")
+        # Checked before the base class builds anything, so that bad shares fail before training.
+        self.hidden_feature_grad = gradient_share("hidden_feature_grad", hidden_feature_grad)
+        self.hidden_scaling_grad = gradient_share("hidden_scaling_grad", hidden_scaling_grad)
         options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
         strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
         super().__init__(scene, config, device=device, strategy=strategy)
@@ -56,7 +57,6 @@ class SecureTrainer(ScaffoldTrainer):
         if hidden_weight is not None:
             self.payload.weight = float(hidden_weight)
         strategy.hidden_weight = self.payload.weight  # ∇_hid per unit of ℓ_hid (RegionAwareStrategy)
-        self.hidden_feature_grad, self.hidden_scaling_grad = float(hidden_feature_grad), float(hidden_scaling_grad)
         self.private = PrivateHeads(self.heads, bits=payload.bits, offsets=hdger,
                                     hidden=self.payload.has_images).to(self.device)
         if self.private.decoder is not None and not hdger:
