@@ -122,6 +122,9 @@ def parse_variant(text: str) -> tuple[str, dict]:
         if name == "lambda":
             kwargs["hidden_weight"] = float(value)
             notes.append(f"λ={float(value):g}")
+        elif name == "until":
+            kwargs["feature_grad_until"] = float(value)
+            notes.append(f"f_v grad until {float(value):g} of the run")
         elif name in ("feature-grad", "scaling-grad"):
             kwargs["hidden_" + name.replace("-", "_")] = float(value)
             notes.append(f"{'f_v' if name == 'feature-grad' else 'l_v'} grad×{float(value):g}")

@@ -45,6 +45,19 @@ def test_payload_spec_parsing():
             PayloadSpec.parse(bad)
 
 
+def test_builtin_emblem_is_the_same_picture_at_every_resolution():
+    """The emblem at twice the size, averaged over 2×2 blocks, is the emblem: its checker cells
+    scale with the image, so a 1080p image payload is no finer than a 96-pixel one."""
+    from securegs_warp.secure.payload import builtin_emblem
+
+    small, large = builtin_emblem(96, 128), builtin_emblem(192, 256)
+    pooled = large.reshape(96, 2, 128, 2, 3).mean(axis=(1, 3))
+    # A pixel on an edge pools two colours, so it may differ by up to half the largest contrast
+    # (0.8); a pattern that does not scale (4-px cells at both sizes) pools cells to grey: 12% differ.
+    differs = np.abs(pooled - small).max(axis=-1) > 0.3
+    assert differs.mean() < 0.02
+
+
 def test_object_payload_needs_hidden_views():
     scene = make_synthetic_scene(width=24, height=18, n_train=3, n_test=1, n_points=200)
     with pytest.raises(ValueError, match="hidden views"):
@@ -241,6 +254,24 @@ def test_hidden_branch_switches(hidden_scene):
         torch.testing.assert_close(feat_f, f * feat, rtol=1e-4, atol=1e-9)
         torch.testing.assert_close(scaling_f, s * scaling, rtol=1e-4, atol=1e-9)
         torch.testing.assert_close(private_f, private, rtol=1e-4, atol=1e-9)
+
+
+def test_feature_grad_until_frees_the_public_features(hidden_scene):
+    """After feature_grad_until of the run no ℓ_hid gradient reaches f_v; the private heads still get theirs."""
+    config = TrainConfig(iterations=4, tile_size=8)
+    with pytest.raises(ValueError, match=r"feature_grad_until must lie in \[0, 1\]"):
+        SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), feature_grad_until=1.5)
+    trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_feature_grad=0.5,
+                            feature_grad_until=0.5)
+    shares = []
+    for step in range(4):
+        trainer.step_count = step
+        shares.append(trainer.current_feature_grad())
+    assert shares == [0.5, 0.5, 0.5, 0.0]
+    out = trainer.render_hidden(hidden_scene.train[0], camera_index=0)
+    trainer.image_loss(out, trainer.payload.views[0]).backward()
+    assert trainer.model.feat.grad is None or not trainer.model.feat.grad.any()
+    assert trainer.private.offset_mlp[0].weight.grad.abs().sum() > 0
 
 
 @pytest.mark.parametrize("growth_at", ["hidden", "public"])

@@ -84,12 +84,16 @@ class Payload:
 
 
 def builtin_emblem(height: int, width: int) -> np.ndarray:
-    """A procedural copyright emblem [H, W, 3]: rings and a checkered cross on a warm field."""
+    """A procedural copyright emblem [H, W, 3]: rings and a checkered cross on a warm field.
+
+    Every feature is a fixed fraction of the image (the checker cell is 1/24 of its height, 4 px at
+    96), so the emblem is the same picture, equally hard to hide, at every resolution."""
     y, x = np.mgrid[0:height, 0:width].astype(np.float32)
     u, v = (x + 0.5) / width - 0.5, (y + 0.5) / height - 0.5
     r = np.hypot(u * width / height, v)
     rings = (np.sin(r * 60.0) > 0).astype(np.float32)
-    cross = ((np.abs(u) < 0.06) | (np.abs(v) < 0.06)) & ((np.floor(x / 4) + np.floor(y / 4)) % 2 == 0)
+    cell = max(1, round(height / 24))
+    cross = ((np.abs(u) < 0.06) | (np.abs(v) < 0.06)) & ((np.floor(x / cell) + np.floor(y / cell)) % 2 == 0)
     img = np.stack([0.9 - 0.5 * rings, 0.55 + 0.3 * rings, 0.2 + 0.2 * rings], axis=-1)
     img[cross] = (0.1, 0.1, 0.5)
     return np.clip(img, 0, 1).astype(np.float32)

@@ -37,6 +37,9 @@ class SecureTrainer(ScaffoldTrainer):
         default is HIDDEN_FEATURE_GRAD). Both are public (stored in the release) and shape the public
         Gaussians; below 1 the public loss dominates them and the hidden branch leans more on its
         private heads.
+    feature_grad_until: the fraction of the iterations during which hidden_feature_grad applies;
+        after it no ℓ_hid gradient reaches f_v, so the public loss alone finishes the features while
+        the private heads keep learning to decode them (1: the whole run).
     strategy_options: RegionAwareStrategy fields to override (r_down, hidden_every,
         hidden_growth_at, ...).
     """
@@ -44,12 +47,15 @@ class SecureTrainer(ScaffoldTrainer):
     def __init__(self, scene: SceneData, config: TrainConfig, payload: PayloadSpec, device="cpu",
                  mode: str = "rdo", hdger: bool = True, hidden_weight: float | None = None,
                  hidden_feature_grad: float = HIDDEN_FEATURE_GRAD, hidden_scaling_grad: float = 1.0,
-                 strategy_options: dict | None = None):
+                 feature_grad_until: float = 1.0, strategy_options: dict | None = None):
         if hidden_weight is not None and not hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
         # Checked before the base class builds anything, so that bad shares fail before training.
         self.hidden_feature_grad = gradient_share("hidden_feature_grad", hidden_feature_grad)
         self.hidden_scaling_grad = gradient_share("hidden_scaling_grad", hidden_scaling_grad)
+        if not 0.0 <= feature_grad_until <= 1.0:
+            raise ValueError(f"feature_grad_until must lie in [0, 1] (a fraction of the run), got {feature_grad_until}")
+        self.feature_grad_until = float(feature_grad_until)
         options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
         strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
         super().__init__(scene, config, device=device, strategy=strategy)
@@ -78,9 +84,15 @@ class SecureTrainer(ScaffoldTrainer):
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = self.private.hidden_offsets if self.private.offset_mlp is not None else self._explicit_offsets
         return self.render_branch(cam, self.private.decoder, self.payload.background, camera_index,
-                                  offset_source=source, feature_grad=self.hidden_feature_grad,
+                                  offset_source=source, feature_grad=self.current_feature_grad(),
                                   scaling_grad=self.hidden_scaling_grad,
                                   **raster_options)
+
+    def current_feature_grad(self) -> float:
+        """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
+        if self.step_count > self.feature_grad_until * self.config.iterations:
+            return 0.0
+        return self.hidden_feature_grad
 
     def _explicit_offsets(self, inputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
