@@ -15,7 +15,8 @@ The anchor-cloud PNG needs matplotlib (``pip install -e ".[plots]"``).
 A variant is ``MODE[:OPTION]...``: the density mode (or no-hdger), then any of ``lambda=X`` (λ
 overriding the payload's default), ``feature-grad=X`` and ``scaling-grad=X`` (the share of ℓ_hid's
 gradient reaching the public anchor features f_v and scalings l_v, 0 to 1:
-``SecureTrainer(hidden_feature_grad=, hidden_scaling_grad=)``) and ``FIELD=VALUE`` for a field of
+``SecureTrainer(hidden_feature_grad=, hidden_scaling_grad=)``), ``until=X`` (the f_v share applies for
+the first X of the run, then 0: ``feature_grad_until``) and ``FIELD=VALUE`` for a field of
 ``RegionAwareStrategy`` (``r_down=16``, ``hidden_every=4``, ``hidden_tau_scale=inf``: no Γ_hid,
 ``hidden_opacity_keeps=false``: prune by the public opacity alone, ``hidden_growth_at=public``: Γ_hid
 anchors at the public offsets' positions, this project's placement before 2026-11-22).
@@ -133,7 +134,7 @@ def parse_variant(text: str) -> tuple[str, dict]:
             kwargs["strategy_options"][name] = value.lower() == "true" if kind is bool else kind(value)
             notes.append(opt)
         else:
-            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, feature-grad=X, scaling-grad=X, "
+            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, feature-grad=X, scaling-grad=X, until=X, "
                              f"or a RegionAwareStrategy field=VALUE: {', '.join(fields)})")
     return ("SecureGS" + (f" ({', '.join(notes)})" if notes else "")), kwargs
 
@@ -155,7 +156,7 @@ def main():
     ap.add_argument("--hide", default="mug")
     ap.add_argument("--payload", default="object+bits:48")
     ap.add_argument("--modes", default="rdo,scaffold",
-                    help="SecureGS variants MODE[:lambda=X][:feature-grad=X][:scaling-grad=X][:FIELD=VALUE]: density modes rdo, scaffold (w/o "
+                    help="SecureGS variants MODE[:lambda=X][:feature-grad=X][:scaling-grad=X][:until=X][:FIELD=VALUE]: density modes rdo, scaffold (w/o "
                          "RDO), global, shared; no-hdger (RDO with explicit hidden offsets)")
     ap.add_argument("--no-baseline", action="store_true",
                     help="train only the SecureGS variants (e.g. when the baseline of the same scene and budget "
