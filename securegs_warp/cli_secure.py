@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 
 import numpy as np
 import torch
@@ -78,6 +79,11 @@ def finish_container(trainer, run: RunFolder, spec: SceneSpec, passphrase: str |
     write_demo_renders(trainer, run)
     run.write_json(run.metrics, metrics)
     _print_metrics(metrics)
+    if metrics.get("hidden_learnt") is False:
+        print(f"warning: the hidden payload was not learnt: its render ({metrics['psnr_hidden']:.2f} dB) is "
+              f"no better than the bare background ({metrics['psnr_hidden_background']:.2f} dB). Train longer "
+              "(--iterations) or let more of the hidden loss reach the anchor features (--feature-grad).",
+              file=sys.stderr)
     return metrics
 
 

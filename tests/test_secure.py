@@ -93,6 +93,15 @@ def test_rdo_grows_a_hidden_set_and_finds_its_box(trained, hidden_scene):
     assert history[-1]["psnr_hidden"] > history[0]["psnr_hidden"] + 3
 
 
+def test_hidden_learnt_compares_the_render_with_the_bare_background(trained, hidden_scene):
+    """An untrained hidden branch scores no better than the bare background; the trained one does."""
+    fresh = SecureTrainer(hidden_scene, TrainConfig(iterations=60, tile_size=8), PayloadSpec.parse("object+bits:48"))
+    before, after = fresh.evaluate_hidden(), trained[0].evaluate_hidden()
+    assert before["psnr_hidden_background"] == pytest.approx(after["psnr_hidden_background"])  # same targets
+    assert before["hidden_learnt"] is False and after["hidden_learnt"] is True
+    assert after["psnr_hidden"] > after["psnr_hidden_background"] + 1.0
+
+
 def test_bits_are_decoded_exactly(trained):
     trainer, _ = trained
     assert trainer.evaluate_hidden()["bit_accuracy"] == 1.0
@@ -176,7 +185,7 @@ def test_exposure_measures_anchors_tracing_the_hidden_surface():
     assert spread["surface_fraction"] < 0.4
 
 
-def test_cli_hide_reveal_demo(tmp_path, monkeypatch):
+def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
     out = tmp_path / "c"
     monkeypatch.setenv("KEYPASS", "correct horse")
     bad = ["hide", "--out", str(tmp_path / "bad"), "--iterations", "2", "--quiet", "--payload", "object", *TINY]
@@ -189,8 +198,11 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch):
     assert (record["hidden_tau_scale"], record["feature_grad"]) == (4.0, 0.5)
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
-                "fps_hidden", "size_mb_public", "train_seconds"):
+                "fps_hidden", "size_mb_public", "train_seconds", "psnr_hidden_background", "hidden_learnt"):
         assert key in metrics, key
+    # the warning is printed exactly when the hidden render is no better than the bare background
+    warned = "warning: the hidden payload was not learnt" in capsys.readouterr().err
+    assert warned == (not metrics["hidden_learnt"])
     assert (out / "key.sealed").is_file() and not (out / "key.safetensors").exists()
     assert sorted(p.name for p in (out / "renders").iterdir() if not p.name.startswith("test_")) == [
         "hidden_view_with_key.png", "hidden_view_without_key.png", "public_view.png"]

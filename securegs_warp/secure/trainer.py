@@ -8,6 +8,7 @@ the region-aware strategy looks at both branches' gradients.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -26,6 +27,10 @@ from .strategy import RegionAwareStrategy
 # 1.25–1.85 dB (two 1080p runs) and the hidden mug still renders at 38.5 / 37.3–37.7 dB (at 0 it is
 # never learnt: the private heads cannot decode it from features the hidden loss does not shape).
 HIDDEN_FEATURE_GRAD = 0.1
+
+# The hidden render must beat the bare background by this much to count as learnt (a collapsed
+# branch scores within a few tenths of a dB of it; a learnt one, tens of dB above on the mug).
+HIDDEN_LEARNT_MARGIN_DB = 1.0
 
 
 class SecureTrainer(ScaffoldTrainer):
@@ -133,6 +138,12 @@ class SecureTrainer(ScaffoldTrainer):
         if pairs:
             metrics = evaluation.image_metrics(pairs, self.device, with_lpips=False)
             out["psnr_hidden"], out["ssim_hidden"] = metrics["psnr"], metrics["ssim"]
+            # What an empty hidden render scores: a hidden branch that never learnt (too small a
+            # gradient share, too short a run) renders the bare background, which is no failure
+            # to the metrics above but is one to the person who hid something.
+            bare = [psnr(p.background.expand_as(target), target) for _, target in pairs]
+            out["psnr_hidden_background"] = float(np.mean(bare))
+            out["hidden_learnt"] = out["psnr_hidden"] > out["psnr_hidden_background"] + HIDDEN_LEARNT_MARGIN_DB
             cams = self.scene.test or self.scene.train
             out["fps_hidden"] = render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:
