@@ -36,7 +36,9 @@ import warp as wp
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import save_scaffold
 from securegs_warp.io.atomic import atomic_write
+from securegs_warp.model.neural_gaussians import gradient_share
 from securegs_warp.secure import PayloadSpec, SecureTrainer
+from securegs_warp.secure.trainer import run_fraction
 from securegs_warp.secure.strategy import RegionAwareStrategy
 from securegs_warp.secure.security import exposure, plot_anchor_clouds
 from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
@@ -124,10 +126,10 @@ def parse_variant(text: str) -> tuple[str, dict]:
             kwargs["hidden_weight"] = float(value)
             notes.append(f"λ={float(value):g}")
         elif name == "until":
-            kwargs["feature_grad_until"] = float(value)
+            kwargs["feature_grad_until"] = run_fraction("until", value)
             notes.append(f"f_v grad until {float(value):g} of the run")
         elif name in ("feature-grad", "scaling-grad"):
-            kwargs["hidden_" + name.replace("-", "_")] = float(value)
+            kwargs["hidden_" + name.replace("-", "_")] = gradient_share(name, value)
             notes.append(f"{'f_v' if name == 'feature-grad' else 'l_v'} grad×{float(value):g}")
         elif name in fields and value:
             kind = type(getattr(RegionAwareStrategy(), name))
@@ -180,6 +182,8 @@ def main():
             "iterations": args.iterations, "seed": args.seed, "hidden": args.hide, "payload": args.payload,
             "exposure_radius": radius}
 
+    variants = [parse_variant(v) for v in args.modes.split(",")]  # a bad variant fails before any training
+
     if not args.no_baseline:
         base = ScaffoldTrainer(scene, config, device=args.device)
         nonfinite = train(base, "baseline")
@@ -188,8 +192,7 @@ def main():
         print(markdown_row("Scaffold-GS baseline", rows["Scaffold-GS baseline"]), flush=True)
         write_report(out, meta, rows)
 
-    for variant in args.modes.split(","):
-        label, kwargs = parse_variant(variant)
+    for label, kwargs in variants:
         sec = SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device, **kwargs)
         nonfinite = train(sec, label)
         hid = sec.evaluate_hidden()

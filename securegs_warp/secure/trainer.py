@@ -28,9 +28,17 @@ from .strategy import RegionAwareStrategy
 # never learnt: the private heads cannot decode it from features the hidden loss does not shape).
 HIDDEN_FEATURE_GRAD = 0.1
 
-# The hidden render must beat the bare background by this much to count as learnt (a collapsed
-# branch scores within a few tenths of a dB of it; a learnt one, tens of dB above on the mug).
+# The hidden render must beat the best flat image by this much to count as learnt (a collapsed
+# branch scores at or below it; a learnt one, tens of dB above on the mug).
 HIDDEN_LEARNT_MARGIN_DB = 1.0
+
+
+def run_fraction(name: str, value) -> float:
+    """``value`` as a float if it lies in [0, 1] (a fraction of the run); a ValueError naming it otherwise."""
+    value = float(value)
+    if not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must lie in [0, 1] (a fraction of the run), got {value}")
+    return value
 
 
 class SecureTrainer(ScaffoldTrainer):
@@ -58,9 +66,7 @@ class SecureTrainer(ScaffoldTrainer):
         # Checked before the base class builds anything, so that bad shares fail before training.
         self.hidden_feature_grad = gradient_share("hidden_feature_grad", hidden_feature_grad)
         self.hidden_scaling_grad = gradient_share("hidden_scaling_grad", hidden_scaling_grad)
-        if not 0.0 <= feature_grad_until <= 1.0:
-            raise ValueError(f"feature_grad_until must lie in [0, 1] (a fraction of the run), got {feature_grad_until}")
-        self.feature_grad_until = float(feature_grad_until)
+        self.feature_grad_until = run_fraction("feature_grad_until", feature_grad_until)
         options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
         strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
         super().__init__(scene, config, device=device, strategy=strategy)
@@ -138,12 +144,13 @@ class SecureTrainer(ScaffoldTrainer):
         if pairs:
             metrics = evaluation.image_metrics(pairs, self.device, with_lpips=False)
             out["psnr_hidden"], out["ssim_hidden"] = metrics["psnr"], metrics["ssim"]
-            # What an empty hidden render scores: a hidden branch that never learnt (too small a
-            # gradient share, too short a run) renders the bare background, which is no failure
-            # to the metrics above but is one to the person who hid something.
-            bare = [psnr(p.background.expand_as(target), target) for _, target in pairs]
-            out["psnr_hidden_background"] = float(np.mean(bare))
-            out["hidden_learnt"] = out["psnr_hidden"] > out["psnr_hidden_background"] + HIDDEN_LEARNT_MARGIN_DB
+            # What the best flat image (each target's mean colour) scores. A hidden branch that
+            # never learnt (too small a gradient share, too short a run) renders the bare
+            # background or noise, no better than that: no failure to the metrics above, but one to
+            # the person who hid something. None where a target is itself flat.
+            flat = float(np.mean([psnr(target.mean(dim=(0, 1)).expand_as(target), target) for _, target in pairs]))
+            out["psnr_hidden_flat"] = flat if np.isfinite(flat) else None
+            out["hidden_learnt"] = (out["psnr_hidden"] > flat + HIDDEN_LEARNT_MARGIN_DB) if np.isfinite(flat) else None
             cams = self.scene.test or self.scene.train
             out["fps_hidden"] = render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:
