@@ -82,8 +82,7 @@ def finish_container(trainer, run: RunFolder, spec: SceneSpec, passphrase: str |
     if metrics.get("hidden_learnt") is False:
         print(f"warning: the hidden payload was not learnt: its render ({metrics['psnr_hidden']:.2f} dB) is not "
               f"1 dB better than a flat image of each target's mean colour ({metrics['psnr_hidden_flat']:.2f} dB). "
-              "Train longer "
-              "(--iterations) or let more of the hidden loss reach the anchor features (--feature-grad).",
+              "Train longer (--iterations) or let more of the hidden loss reach the anchor features (--feature-grad).",
               file=sys.stderr)
     return metrics
 

@@ -149,8 +149,11 @@ class SecureTrainer(ScaffoldTrainer):
             # background or noise, no better than that: no failure to the metrics above, but one to
             # the person who hid something. None where a target is itself flat.
             flat = float(np.mean([psnr(target.mean(dim=(0, 1)).expand_as(target), target) for _, target in pairs]))
-            out["psnr_hidden_flat"] = flat if np.isfinite(flat) else None
-            out["hidden_learnt"] = (out["psnr_hidden"] > flat + HIDDEN_LEARNT_MARGIN_DB) if np.isfinite(flat) else None
+            if np.isfinite(flat):
+                out["psnr_hidden_flat"] = flat
+                out["hidden_learnt"] = out["psnr_hidden"] > flat + HIDDEN_LEARNT_MARGIN_DB
+            else:
+                out["psnr_hidden_flat"] = out["hidden_learnt"] = None
             cams = self.scene.test or self.scene.train
             out["fps_hidden"] = render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:
