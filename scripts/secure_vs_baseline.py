@@ -45,7 +45,7 @@ from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
 
 
 COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
-           "ssim_hidden", "bit_accuracy", "fps_public", "fps_public_and_hidden", "size_mb", "anchors",
+           "ssim_hidden", "hidden_learnt", "bit_accuracy", "fps_public", "fps_public_and_hidden", "size_mb", "anchors",
            "train_seconds", "nonfinite_steps")
 
 
@@ -205,7 +205,7 @@ def main():
             fps_both = render_fps(both, cams, args.device) if sec.private.decoder is not None else None
         rows[label] = {**public_row(sec, nonfinite, scene, radius), "fps_public_and_hidden": fps_both,
                        "psnr_hidden": hid.get("psnr_hidden"), "ssim_hidden": hid.get("ssim_hidden"),
-                       "bit_accuracy": hid.get("bit_accuracy"),
+                       "bit_accuracy": hid.get("bit_accuracy"), "hidden_learnt": hid.get("hidden_learnt"),
                        "hidden_anchors": int(sec.strategy_state["is_hidden"].sum())}
         clouds[label] = sec.model.xyz.detach().cpu().numpy()
         print(markdown_row(label, rows[label]), flush=True)
