@@ -45,7 +45,7 @@ from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
 
 
 COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
-           "ssim_hidden", "hidden_learnt", "bit_accuracy", "fps_public", "fps_public_and_hidden", "size_mb", "anchors",
+           "ssim_hidden", "hidden_learnt", "bit_accuracy", "bit_accuracy_on_baseline", "fps_public", "fps_public_and_hidden", "size_mb", "anchors",
            "train_seconds", "nonfinite_steps")
 
 
@@ -141,6 +141,16 @@ def parse_variant(text: str) -> tuple[str, dict]:
     return ("SecureGS" + (f" ({', '.join(notes)})" if notes else "")), kwargs
 
 
+def bits_on(secure, model) -> float | None:
+    """How much of the hidden message the key's bit head reads from another model's anchor
+    features, e.g. the baseline's, trained without it: 0.5 is chance; near 1 means the head would
+    "find" the message in a model that never held it. None without a bit payload."""
+    bits = secure.payload.bits
+    if bits is None:
+        return None
+    return float((secure.private.decode_bits(model.feat.detach()) == bits.long()).float().mean())
+
+
 def release_mb(model) -> float:
     """Size in MB of the public release (point_cloud.ply + MLPs) of a trainer's model."""
     with tempfile.TemporaryDirectory() as d:
@@ -184,6 +194,7 @@ def main():
 
     variants = [parse_variant(v) for v in args.modes.split(",")]  # a bad variant fails before any training
 
+    base = None
     if not args.no_baseline:
         base = ScaffoldTrainer(scene, config, device=args.device)
         nonfinite = train(base, "baseline")
@@ -206,6 +217,7 @@ def main():
         rows[label] = {**public_row(sec, nonfinite, scene, radius), "fps_public_and_hidden": fps_both,
                        "psnr_hidden": hid.get("psnr_hidden"), "ssim_hidden": hid.get("ssim_hidden"),
                        "bit_accuracy": hid.get("bit_accuracy"), "hidden_learnt": hid.get("hidden_learnt"),
+                       "bit_accuracy_on_baseline": bits_on(sec, base.model) if base is not None else None,
                        "hidden_anchors": int(sec.strategy_state["is_hidden"].sum())}
         clouds[label] = sec.model.xyz.detach().cpu().numpy()
         print(markdown_row(label, rows[label]), flush=True)
