@@ -36,9 +36,8 @@ import warp as wp
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import save_scaffold
 from securegs_warp.io.atomic import atomic_write
-from securegs_warp.model.neural_gaussians import gradient_share
+from securegs_warp.model.neural_gaussians import unit_fraction
 from securegs_warp.secure import PayloadSpec, SecureTrainer
-from securegs_warp.secure.trainer import run_fraction
 from securegs_warp.secure.strategy import RegionAwareStrategy
 from securegs_warp.secure.security import exposure, plot_anchor_clouds
 from securegs_warp.train import ScaffoldTrainer, TrainConfig, render_fps
@@ -126,10 +125,10 @@ def parse_variant(text: str) -> tuple[str, dict]:
             kwargs["hidden_weight"] = float(value)
             notes.append(f"λ={float(value):g}")
         elif name == "until":
-            kwargs["feature_grad_until"] = run_fraction("until", value)
+            kwargs["feature_grad_until"] = unit_fraction("until", value, "a fraction of the run")
             notes.append(f"f_v grad until {float(value):g} of the run")
         elif name in ("feature-grad", "scaling-grad"):
-            kwargs["hidden_" + name.replace("-", "_")] = gradient_share(name, value)
+            kwargs["hidden_" + name.replace("-", "_")] = unit_fraction(name, value)
             notes.append(f"{'f_v' if name == 'feature-grad' else 'l_v'} grad×{float(value):g}")
         elif name in fields and value:
             kind = type(getattr(RegionAwareStrategy(), name))
@@ -139,16 +138,6 @@ def parse_variant(text: str) -> tuple[str, dict]:
             raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, feature-grad=X, scaling-grad=X, until=X, "
                              f"or a RegionAwareStrategy field=VALUE: {', '.join(fields)})")
     return ("SecureGS" + (f" ({', '.join(notes)})" if notes else "")), kwargs
-
-
-def bits_on(secure, model) -> float | None:
-    """How much of the hidden message the key's bit head reads from another model's anchor
-    features, e.g. the baseline's, trained without it: 0.5 is chance; near 1 means the head would
-    "find" the message in a model that never held it. None without a bit payload."""
-    bits = secure.payload.bits
-    if bits is None:
-        return None
-    return float((secure.private.decode_bits(model.feat.detach()) == bits.long()).float().mean())
 
 
 def release_mb(model) -> float:
@@ -217,7 +206,7 @@ def main():
         rows[label] = {**public_row(sec, nonfinite, scene, radius), "fps_public_and_hidden": fps_both,
                        "psnr_hidden": hid.get("psnr_hidden"), "ssim_hidden": hid.get("ssim_hidden"),
                        "bit_accuracy": hid.get("bit_accuracy"), "hidden_learnt": hid.get("hidden_learnt"),
-                       "bit_accuracy_on_baseline": bits_on(sec, base.model) if base is not None else None,
+                       "bit_accuracy_on_baseline": sec.bit_accuracy(base.model.feat) if base is not None else None,
                        "hidden_anchors": int(sec.strategy_state["is_hidden"].sum())}
         clouds[label] = sec.model.xyz.detach().cpu().numpy()
         print(markdown_row(label, rows[label]), flush=True)

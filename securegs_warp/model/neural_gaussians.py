@@ -136,18 +136,18 @@ def generate_neural_gaussians(
     }
 
 
-def gradient_share(name: str, value: float) -> float:
-    """``value`` as a float if it lies in [0, 1] (a share of a gradient); a ValueError naming it otherwise."""
+def unit_fraction(name: str, value: float, meaning: str = "a share of a gradient") -> float:
+    """``value`` as a float if it lies in [0, 1] (``meaning`` says of what); a ValueError naming it otherwise."""
     value = float(value)
     if not 0.0 <= value <= 1.0:
-        raise ValueError(f"{name} must lie in [0, 1] (a share of a gradient), got {value}")
+        raise ValueError(f"{name} must lie in [0, 1] ({meaning}), got {value}")
     return value
 
 
 def scale_gradient(x: torch.Tensor, factor: float) -> torch.Tensor:
     """``x`` in the forward pass; its gradient multiplied by ``factor`` in the backward pass
     (0: detached, 1: ``x`` itself)."""
-    factor = gradient_share("a gradient factor", factor)
+    factor = unit_fraction("a gradient factor", factor)
     if factor == 1.0:
         return x
     if factor == 0.0:

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 
 from ..data import Camera, SceneData
 from .. import evaluation
-from ..model.neural_gaussians import gradient_share
+from ..model.neural_gaussians import unit_fraction
 from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer, TrainConfig
 from .heads import PrivateHeads
@@ -31,14 +31,6 @@ HIDDEN_FEATURE_GRAD = 0.1
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
 # branch scores at or below it; a learnt one, tens of dB above on the mug).
 HIDDEN_LEARNT_MARGIN_DB = 1.0
-
-
-def run_fraction(name: str, value) -> float:
-    """``value`` as a float if it lies in [0, 1] (a fraction of the run); a ValueError naming it otherwise."""
-    value = float(value)
-    if not 0.0 <= value <= 1.0:
-        raise ValueError(f"{name} must lie in [0, 1] (a fraction of the run), got {value}")
-    return value
 
 
 class SecureTrainer(ScaffoldTrainer):
@@ -64,9 +56,9 @@ class SecureTrainer(ScaffoldTrainer):
         if hidden_weight is not None and not hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
         # Checked before the base class builds anything, so that bad shares fail before training.
-        self.hidden_feature_grad = gradient_share("hidden_feature_grad", hidden_feature_grad)
-        self.hidden_scaling_grad = gradient_share("hidden_scaling_grad", hidden_scaling_grad)
-        self.feature_grad_until = run_fraction("feature_grad_until", feature_grad_until)
+        self.hidden_feature_grad = unit_fraction("hidden_feature_grad", hidden_feature_grad)
+        self.hidden_scaling_grad = unit_fraction("hidden_scaling_grad", hidden_scaling_grad)
+        self.feature_grad_until = unit_fraction("feature_grad_until", feature_grad_until, "a fraction of the run")
         options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
         strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
         super().__init__(scene, config, device=device, strategy=strategy)
@@ -157,11 +149,21 @@ class SecureTrainer(ScaffoldTrainer):
             cams = self.scene.test or self.scene.train
             out["fps_hidden"] = render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:
-            decoded = self.private.decode_bits(self.model.feat)
-            out["bit_accuracy"] = float((decoded == p.bits.long()).float().mean())
+            out["bit_accuracy"] = self.bit_accuracy()
             out["bits"] = p.bits.long().tolist()
-            out["bits_decoded"] = decoded.tolist()
+            out["bits_decoded"] = self.private.decode_bits(self.model.feat).tolist()
         return out
+
+    @torch.no_grad()
+    def bit_accuracy(self, feat: torch.Tensor | None = None) -> float | None:
+        """The fraction of the hidden message the key's bit head reads from anchor features [N, d]:
+        this container's by default, or another model's (a plain Scaffold-GS model's features show
+        whether the head would "find" the message where it never was; 0.5 is chance). None
+        without a bit payload."""
+        if self.payload.bits is None:
+            return None
+        decoded = self.private.decode_bits(self.model.feat if feat is None else feat)
+        return float((decoded == self.payload.bits.long()).float().mean())
 
     # -- checkpoints ----------------------------------------------------------------------------
 
