@@ -15,8 +15,7 @@ The anchor-cloud PNG needs matplotlib (``pip install -e ".[plots]"``).
 A variant is ``MODE[:OPTION]...``: the density mode (or no-hdger), then any of ``lambda=X`` (λ
 overriding the payload's default), ``feature-grad=X`` and ``scaling-grad=X`` (the share of ℓ_hid's
 gradient reaching the public anchor features f_v and scalings l_v, 0 to 1:
-``SecureTrainer(hidden_feature_grad=, hidden_scaling_grad=)``), ``unused=X`` (the f_v share instead
-for anchors the public render of the step's view culls: ``unused_feature_grad``), ``until=X`` (the f_v share applies for
+``SecureTrainer(hidden_feature_grad=, hidden_scaling_grad=)``), ``until=X`` (the f_v share applies for
 the first X of the run, then 0: ``feature_grad_until``) and ``FIELD=VALUE`` for a field of
 ``RegionAwareStrategy`` (``r_down=16``, ``hidden_every=4``, ``hidden_tau_scale=inf``: no Γ_hid,
 ``hidden_opacity_keeps=false``: prune by the public opacity alone, ``hidden_growth_at=public``: Γ_hid
@@ -125,9 +124,6 @@ def parse_variant(text: str) -> tuple[str, dict]:
         if name == "lambda":
             kwargs["hidden_weight"] = float(value)
             notes.append(f"λ={float(value):g}")
-        elif name == "unused":
-            kwargs["unused_feature_grad"] = unit_fraction("unused", value)
-            notes.append(f"f_v grad×{float(value):g} where the public render culls the anchor")
         elif name == "until":
             kwargs["feature_grad_until"] = unit_fraction("until", value, "a fraction of the run")
             notes.append(f"f_v grad until {float(value):g} of the run")
@@ -139,7 +135,7 @@ def parse_variant(text: str) -> tuple[str, dict]:
             kwargs["strategy_options"][name] = value.lower() == "true" if kind is bool else kind(value)
             notes.append(opt)
         else:
-            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, feature-grad=X, scaling-grad=X, unused=X, until=X, "
+            raise ValueError(f"variant {text!r}: unknown option {opt!r} (lambda=X, feature-grad=X, scaling-grad=X, until=X, "
                              f"or a RegionAwareStrategy field=VALUE: {', '.join(fields)})")
     return ("SecureGS" + (f" ({', '.join(notes)})" if notes else "")), kwargs
 
@@ -161,7 +157,7 @@ def main():
     ap.add_argument("--hide", default="mug")
     ap.add_argument("--payload", default="object+bits:48")
     ap.add_argument("--modes", default="rdo,scaffold",
-                    help="SecureGS variants MODE[:lambda=X][:feature-grad=X][:scaling-grad=X][:unused=X][:until=X][:FIELD=VALUE]: density modes rdo, scaffold (w/o "
+                    help="SecureGS variants MODE[:lambda=X][:feature-grad=X][:scaling-grad=X][:until=X][:FIELD=VALUE]: density modes rdo, scaffold (w/o "
                          "RDO), global, shared; no-hdger (RDO with explicit hidden offsets)")
     ap.add_argument("--no-baseline", action="store_true",
                     help="train only the SecureGS variants (e.g. when the baseline of the same scene and budget "

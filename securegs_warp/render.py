@@ -16,7 +16,7 @@ def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def render_view(model, heads, cam: Camera, background: torch.Tensor, *, camera_index: int | None = None,
-                offset_source=None, feature_grad: float | torch.Tensor = 1.0, scaling_grad: float = 1.0,
+                offset_source=None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
                 effects=None, **raster_options) -> dict:
     """Decode ``model``'s anchors visible from ``cam`` with ``heads`` and rasterize them.
 

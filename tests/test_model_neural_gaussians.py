@@ -2,7 +2,6 @@
 
 import math
 
-import pytest
 import torch
 
 from securegs_warp.model import (
@@ -136,18 +135,3 @@ def test_camera_center_from_viewmat():
     viewmat[:3, :3] = R
     viewmat[:3, 3] = -R @ center
     assert torch.allclose(camera_center_from_viewmat(viewmat), center, atol=1e-6)
-
-
-def test_scale_gradient_per_row():
-    """A [R] factor scales each row's gradient; a wrong shape or a factor outside [0, 1] is refused."""
-    from securegs_warp.model.neural_gaussians import scale_gradient
-
-    x = torch.randn(3, 2, requires_grad=True)
-    factor = torch.tensor([0.0, 0.5, 1.0])
-    y = scale_gradient(x, factor)
-    assert torch.equal(y, x)
-    (y * torch.arange(6.0).reshape(3, 2)).sum().backward()
-    torch.testing.assert_close(x.grad, factor[:, None] * torch.arange(6.0).reshape(3, 2))
-    for bad in (torch.ones(2), torch.tensor([0.0, 1.5, 1.0])):
-        with pytest.raises(ValueError, match=r"\[3\] tensor in \[0, 1\]"):
-            scale_gradient(x, bad)

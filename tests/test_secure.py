@@ -273,41 +273,6 @@ def test_hidden_branch_switches(hidden_scene):
         torch.testing.assert_close(private_f, private, rtol=1e-4, atol=1e-9)
 
 
-def test_unused_anchors_get_their_own_feature_share(hidden_scene):
-    """unused_feature_grad: anchors with no Gaussian in the public render of the step's view get
-    that share of ℓ_hid's f_v gradient, the others hidden_feature_grad; the forward pass is unchanged."""
-    config = TrainConfig(iterations=4, tile_size=8)
-    with pytest.raises(ValueError, match=r"unused_feature_grad must lie in \[0, 1\]"):
-        SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), unused_feature_grad=-0.1)
-    trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_feature_grad=0.25,
-                            unused_feature_grad=1.0)
-    trainer.step_count = 1
-    public = trainer.render(hidden_scene.train[0], camera_index=0)
-    used = torch.zeros(trainer.model.num_anchors, dtype=torch.bool)
-    used[public["gaussians"]["anchor_index"]] = True
-    shares = trainer.feature_grad_per_anchor(public)
-    assert torch.equal(shares, torch.where(used, 0.25, 1.0))
-    # Gradients, with half the anchors called used so that both groups are large.
-    used = torch.arange(trainer.model.num_anchors) % 2 == 0
-    shares = trainer.feature_grad_per_anchor({"gaussians": {"anchor_index": used.nonzero()[:, 0]}})
-    grads = {}
-    for name, share in (("per anchor", shares), ("all", 1.0)):
-        trainer.optimizer.zero_grad(set_to_none=True)
-        out = trainer.render_hidden(hidden_scene.train[0], camera_index=0, feature_grad=share)
-        trainer.image_loss(out, trainer.payload.views[0]).backward()
-        grads[name] = (out["image"].detach(), trainer.model.feat.grad.clone())
-    assert torch.equal(grads["per anchor"][0], grads["all"][0])
-    full = grads["all"][1]
-    assert full[used].abs().sum() > 0 and full[~used].abs().sum() > 0
-    torch.testing.assert_close(grads["per anchor"][1], torch.where(used[:, None], 0.25, 1.0) * full,
-                               rtol=1e-4, atol=1e-9)
-    trainer.step_count = 4  # after feature_grad_until (the whole run here) both shares stop; and
-    trainer.feature_grad_until = 0.5  # without unused_feature_grad one number serves every anchor
-    assert trainer.feature_grad_per_anchor(public) == 0.0
-    trainer.step_count, trainer.unused_feature_grad = 1, None
-    assert trainer.feature_grad_per_anchor(public) == 0.25
-
-
 def test_feature_grad_until_frees_the_public_features(hidden_scene):
     """After feature_grad_until of the run no ℓ_hid gradient reaches f_v; the private heads still get theirs."""
     config = TrainConfig(iterations=4, tile_size=8)

@@ -60,7 +60,7 @@ def generate_neural_gaussians(
     *,
     camera_index: int | None = None,
     offset_source: OffsetSource = stored_offsets,
-    feature_grad: float | torch.Tensor = 1.0,
+    feature_grad: float = 1.0,
     scaling_grad: float = 1.0,
 ) -> dict[str, torch.Tensor]:
     """Decode the visible anchors into the Gaussians of one view, exactly as Scaffold-GS does.
@@ -82,7 +82,6 @@ def generate_neural_gaussians(
             f_v and scalings l_v (1: all, 0: none, between: scaled; the forward pass is unchanged).
             SecureGS's hidden pass reads these public attributes and may move them less than the
             public pass does, so that the public file is shaped mainly by the public loss.
-            feature_grad may also be a [N] tensor: one share per model anchor.
 
     Returns:
         dict with M kept Gaussians out of Nv * k decoded (Gaussian j of the i-th visible anchor is
@@ -112,8 +111,6 @@ def generate_neural_gaussians(
     ob_view = xyz - camera_center.to(xyz)
     ob_dist = ob_view.norm(dim=1, keepdim=True)
     ob_view = ob_view / ob_dist
-    if torch.is_tensor(feature_grad):
-        feature_grad = feature_grad[anchor_index]
     feat = heads.blend_features(scale_gradient(model.feat[anchor_index], feature_grad), ob_view, ob_dist)
     scaling = torch.exp(scale_gradient(model.scaling[anchor_index], scaling_grad))
     inputs = AnchorViewInputs(anchor_index, xyz, feat, ob_view, ob_dist, scaling, model.offsets[anchor_index])
@@ -147,16 +144,9 @@ def unit_fraction(name: str, value: float, meaning: str = "a share of a gradient
     return value
 
 
-def scale_gradient(x: torch.Tensor, factor: float | torch.Tensor) -> torch.Tensor:
-    """``x`` [R, ...] in the forward pass; its gradient multiplied by ``factor`` in the backward pass
-    (0: detached, 1: ``x`` itself). ``factor``: one number, or a [R] tensor of numbers in [0, 1],
-    one per row of ``x``."""
-    if torch.is_tensor(factor):
-        if factor.shape != x.shape[:1] or not bool(((factor >= 0) & (factor <= 1)).all()):
-            raise ValueError(f"per-row gradient factors must be a [{x.shape[0]}] tensor in [0, 1], "
-                             f"got shape {list(factor.shape)}")
-        factor = factor.to(x).reshape(-1, *([1] * (x.dim() - 1)))
-        return x.detach() + factor * (x - x.detach())
+def scale_gradient(x: torch.Tensor, factor: float) -> torch.Tensor:
+    """``x`` in the forward pass; its gradient multiplied by ``factor`` in the backward pass
+    (0: detached, 1: ``x`` itself)."""
     factor = unit_fraction("a gradient factor", factor)
     if factor == 1.0:
         return x

@@ -42,12 +42,9 @@ class SecureTrainer(ScaffoldTrainer):
         default is HIDDEN_FEATURE_GRAD). Both are public (stored in the release) and shape the public
         Gaussians; below 1 the public loss dominates them and the hidden branch leans more on its
         private heads.
-    unused_feature_grad: the share instead for the anchors whose k public Gaussians the public
-        render of the same view culls (all opacities <= 0): their f_v do not touch that image, so
-        the hidden loss may shape them more (None: hidden_feature_grad for every anchor).
-    feature_grad_until: the fraction of the iterations during which these shares apply; after it
-        no ℓ_hid gradient reaches f_v, so the public loss alone finishes the features while the
-        private heads keep learning to decode them (1: the whole run).
+    feature_grad_until: the fraction of the iterations during which hidden_feature_grad applies;
+        after it no ℓ_hid gradient reaches f_v, so the public loss alone finishes the features while
+        the private heads keep learning to decode them (1: the whole run).
     strategy_options: RegionAwareStrategy fields to override (r_down, hidden_every,
         hidden_growth_at, ...).
     """
@@ -55,15 +52,12 @@ class SecureTrainer(ScaffoldTrainer):
     def __init__(self, scene: SceneData, config: TrainConfig, payload: PayloadSpec, device="cpu",
                  mode: str = "rdo", hdger: bool = True, hidden_weight: float | None = None,
                  hidden_feature_grad: float = HIDDEN_FEATURE_GRAD, hidden_scaling_grad: float = 1.0,
-                 unused_feature_grad: float | None = None, feature_grad_until: float = 1.0,
-                 strategy_options: dict | None = None):
+                 feature_grad_until: float = 1.0, strategy_options: dict | None = None):
         if hidden_weight is not None and not hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
         # Checked before the base class builds anything, so that bad shares fail before training.
         self.hidden_feature_grad = unit_fraction("hidden_feature_grad", hidden_feature_grad)
         self.hidden_scaling_grad = unit_fraction("hidden_scaling_grad", hidden_scaling_grad)
-        self.unused_feature_grad = (None if unused_feature_grad is None
-                                    else unit_fraction("unused_feature_grad", unused_feature_grad))
         self.feature_grad_until = unit_fraction("feature_grad_until", feature_grad_until, "a fraction of the run")
         options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
         strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
@@ -87,51 +81,31 @@ class SecureTrainer(ScaffoldTrainer):
 
     # -- rendering ------------------------------------------------------------------------------
 
-    def render_hidden(self, cam: Camera, camera_index: int | None = None,
-                      feature_grad: float | torch.Tensor | None = None, **raster_options) -> dict:
-        """The hidden branch's render of a view (needs the private heads: the key).
-        feature_grad: the f_v share(s) of its gradient, a number or [N]; default current_feature_grad()."""
+    def render_hidden(self, cam: Camera, camera_index: int | None = None, **raster_options) -> dict:
+        """The hidden branch's render of a view (needs the private heads: the key)."""
         if self.private.decoder is None:
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = self.private.hidden_offsets if self.private.offset_mlp is not None else self._explicit_offsets
         return self.render_branch(cam, self.private.decoder, self.payload.background, camera_index,
-                                  offset_source=source,
-                                  feature_grad=self.current_feature_grad() if feature_grad is None else feature_grad,
+                                  offset_source=source, feature_grad=self.current_feature_grad(),
                                   scaling_grad=self.hidden_scaling_grad,
                                   **raster_options)
 
-    def current_feature_grad(self, unused: bool = False) -> float:
-        """The f_v share (``unused``: for anchors the public render culls) until
-        feature_grad_until of the run, 0 after it."""
+    def current_feature_grad(self) -> float:
+        """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
         if self.step_count > self.feature_grad_until * self.config.iterations:
             return 0.0
-        if unused and self.unused_feature_grad is not None:
-            return self.unused_feature_grad
         return self.hidden_feature_grad
-
-    def feature_grad_per_anchor(self, public: dict) -> float | torch.Tensor:
-        """The f_v shares for a training step given its public render: a number when every anchor
-        gets the same, else [N] with current_feature_grad(unused=True) where no public Gaussian of
-        the anchor was kept."""
-        share, unused = self.current_feature_grad(), self.current_feature_grad(unused=True)
-        if share == unused:
-            return share
-        shares = torch.full((self.model.num_anchors,), unused, device=self.device)
-        shares[public["gaussians"]["anchor_index"]] = share
-        return shares
 
     def _explicit_offsets(self, inputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
         return self.model.hidden_offsets[inputs.anchor_index] * inputs.scaling[:, None, :3]
 
-    def extra_losses(self, index: int, loss: torch.Tensor, public: dict):
+    def extra_losses(self, index: int, loss: torch.Tensor):
         p, extra, hidden = self.payload, {}, None
         view = index if p.views is not None else p.image_view
         if view is not None:
-            # An image payload's view is not this step's: the public render shows which anchors
-            # this step's view uses, not which the hidden view's public image would.
-            shares = self.feature_grad_per_anchor(public) if view == index else self.current_feature_grad()
-            out = self.render_hidden(self.scene.train[view], camera_index=view, feature_grad=shares)
+            out = self.render_hidden(self.scene.train[view], camera_index=view)
             target = p.views[view] if p.views is not None else p.image
             loss = loss + p.weight * self.image_loss(out, target)
             hidden = (out["gaussians"], out["info"])

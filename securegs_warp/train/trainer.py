@@ -169,7 +169,7 @@ class ScaffoldTrainer:
         index = self._next_view()
         out = self.render(self.scene.train[index], camera_index=index)
         target = self._targets[index]
-        loss, hidden, extra = self.extra_losses(index, self.image_loss(out, target), out)
+        loss, hidden, extra = self.extra_losses(index, self.image_loss(out, target))
         loss.backward()
         nonfinite = zero_nonfinite_gradients(self.optimizer)
         if nonfinite:
@@ -186,10 +186,9 @@ class ScaffoldTrainer:
         self.train_seconds += time.perf_counter() - t0
         return result
 
-    def extra_losses(self, index: int, loss: torch.Tensor, public: dict):
-        """Hook for the hidden branch, given training view ``index``, its public loss and its
-        public render (``render`` output): (total loss, (gaussians, info) of a hidden render or
-        None, numbers to report). Scaffold-GS has only the public loss."""
+    def extra_losses(self, index: int, loss: torch.Tensor):
+        """Hook for the hidden branch: (total loss, (gaussians, info) of a hidden render or None,
+        numbers to report). Scaffold-GS has only the public loss."""
         return loss, None, {}
 
     @torch.no_grad()
