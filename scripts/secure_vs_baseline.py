@@ -48,27 +48,41 @@ COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ss
            "train_seconds", "nonfinite_steps")
 
 
-def train(trainer, label):
-    """Run the trainer's whole budget; returns the number of steps that had a non-finite gradient
-    (zeroed by the trainer, see train.trainer.zero_nonfinite_gradients)."""
+def train(trainer, label) -> dict:
+    """Run the trainer's whole budget. Returns the columns it yields: ``nonfinite_steps`` (steps
+    with a non-finite gradient, skipped by the trainer: see train.trainer.nonfinite_gradient_counts),
+    ``nonfinite_at`` ([step, [parameter groups at fault]] of each) and ``train_psnr_per_100`` (the
+    mean training-view PSNR of every 100 steps, to see when a run went wrong)."""
     t0 = time.perf_counter()
-    nonfinite = sum("nonfinite_grads" in trainer.step() for _ in range(trainer.config.iterations))
+    nonfinite_at, trace, window = [], [], []
+    for _ in range(trainer.config.iterations):
+        stats = trainer.step()
+        window.append(stats["psnr"])
+        if len(window) == 100:
+            trace.append(round(float(np.mean(window)), 2))
+            window = []
+        if "nonfinite_grads" in stats:
+            nonfinite_at.append([trainer.step_count, stats["nonfinite_groups"]])
     print(f"{label}: {trainer.config.iterations} steps in {time.perf_counter() - t0:.0f} s, "
-          f"{trainer.model.num_anchors} anchors, {nonfinite} steps with non-finite gradients", flush=True)
-    return nonfinite
+          f"{trainer.model.num_anchors} anchors, {len(nonfinite_at)} steps with non-finite gradients "
+          f"{nonfinite_at or ''}", flush=True)
+    return {"nonfinite_steps": len(nonfinite_at), "nonfinite_at": nonfinite_at, "train_psnr_per_100": trace}
 
 
 class RegionErrors:
     """Public held-out PSNR outside and inside the hidden object's footprint (its alpha in each test
     view, dilated by 1% of the width): where the cover scene loses fidelity to the hidden branch.
     Fed by ``trainer.evaluate(on_render=...)`` with the renders it makes anyway; PSNR of the squared
-    error pooled over all views' pixels of the region."""
+    error pooled over all views' pixels of the region. Also each view's PSNR (``per_view``), to tell
+    one broken view from a model that is worse everywhere."""
 
     def __init__(self):
         self.sums = {"off": [0.0, 0], "on": [0.0, 0]}
+        self.per_view = []
 
     def __call__(self, cam, image):
         err = ((image - torch.as_tensor(cam.image, device=image.device)) ** 2).mean(dim=-1)
+        self.per_view.append(round(float(-10.0 * torch.log10(err.mean())), 2))
         alpha = torch.as_tensor(cam.hidden_alpha[..., 0], device=image.device)
         r = max(1, cam.width // 100)
         on = torch.nn.functional.max_pool2d((alpha > 0.01).float()[None, None], 2 * r + 1, 1, r)[0, 0] > 0
@@ -83,15 +97,17 @@ class RegionErrors:
                 for name, (total, count) in self.sums.items()}
 
 
-def public_row(trainer, nonfinite: int, scene, radius: float) -> dict:
+def public_row(trainer, training: dict, scene, radius: float) -> dict:
     """The columns every model has: public held-out metrics (with RegionErrors' PSNR outside/inside
-    the hidden footprint), release size, anchors, training time, and the anchor cloud's exposure."""
+    the hidden footprint and per view), release size, anchors, training time and ``train``'s
+    columns, and the anchor cloud's exposure."""
     regions = RegionErrors()
     ev = trainer.evaluate(on_render=regions)
     xyz = trainer.model.xyz.detach().cpu().numpy()
-    return {"psnr_public": ev["psnr"], **regions.psnr(), "ssim_public": ev["ssim"], "fps_public": ev["fps"],
-            "size_mb": release_mb(trainer), "anchors": ev["anchors"], "train_seconds": trainer.train_seconds,
-            "nonfinite_steps": nonfinite, "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
+    return {"psnr_public": ev["psnr"], **regions.psnr(), "psnr_public_per_view": regions.per_view,
+            "ssim_public": ev["ssim"], "fps_public": ev["fps"], "size_mb": release_mb(trainer),
+            "anchors": ev["anchors"], "train_seconds": trainer.train_seconds, **training,
+            "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
 
 
 def markdown_row(label, r) -> str:
@@ -186,15 +202,14 @@ def main():
     base = None
     if not args.no_baseline:
         base = ScaffoldTrainer(scene, config, device=args.device)
-        nonfinite = train(base, "baseline")
-        rows["Scaffold-GS baseline"] = public_row(base, nonfinite, scene, radius)
+        rows["Scaffold-GS baseline"] = public_row(base, train(base, "baseline"), scene, radius)
         clouds["Scaffold-GS baseline"] = base.model.xyz.detach().cpu().numpy()
         print(markdown_row("Scaffold-GS baseline", rows["Scaffold-GS baseline"]), flush=True)
         write_report(out, meta, rows)
 
     for label, kwargs in variants:
         sec = SecureTrainer(scene, config, PayloadSpec.parse(args.payload), device=args.device, **kwargs)
-        nonfinite = train(sec, label)
+        training = train(sec, label)
         hid = sec.evaluate_hidden()
         cams = scene.test
 
@@ -203,7 +218,7 @@ def main():
 
         with torch.no_grad():  # a bit-only payload has no hidden render
             fps_both = render_fps(both, cams, args.device) if sec.private.decoder is not None else None
-        rows[label] = {**public_row(sec, nonfinite, scene, radius), "fps_public_and_hidden": fps_both,
+        rows[label] = {**public_row(sec, training, scene, radius), "fps_public_and_hidden": fps_both,
                        "psnr_hidden": hid.get("psnr_hidden"), "ssim_hidden": hid.get("ssim_hidden"),
                        "bit_accuracy": hid.get("bit_accuracy"), "hidden_learnt": hid.get("hidden_learnt"),
                        "bit_accuracy_on_baseline": sec.bit_accuracy(base.model.feat) if base is not None else None,

@@ -171,15 +171,18 @@ class ScaffoldTrainer:
         target = self._targets[index]
         loss, hidden, extra = self.extra_losses(index, self.image_loss(out, target))
         loss.backward()
-        nonfinite = zero_nonfinite_gradients(self.optimizer)
-        if nonfinite:
-            extra = {**extra, "nonfinite_grads": nonfinite}
+        bad = nonfinite_gradient_counts(self.optimizer)
         changed = {}
-        if self.config.densify:
-            changed = self.strategy.step_post_backward(self.model, self.optimizer, self.strategy_state,
-                                                       self.step_count, out["gaussians"], out["info"],
-                                                       generator=self.generator, hidden=hidden)
-        self.optimizer.step()
+        if bad:
+            # Skip the whole update, as mixed-precision training does on overflow: see
+            # nonfinite_gradient_counts for why zeroing the bad entries is not enough.
+            extra = {**extra, "nonfinite_grads": sum(bad.values()), "nonfinite_groups": sorted(bad)}
+        else:
+            if self.config.densify:
+                changed = self.strategy.step_post_backward(self.model, self.optimizer, self.strategy_state,
+                                                           self.step_count, out["gaussians"], out["info"],
+                                                           generator=self.generator, hidden=hidden)
+            self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target),
                   "anchors": self.model.num_anchors, **extra, **changed}
@@ -256,22 +259,29 @@ class ScaffoldTrainer:
 
 
 @torch.no_grad()
-def zero_nonfinite_gradients(optimizer: torch.optim.Optimizer) -> int:
-    """Set the inf/NaN entries of every gradient the optimizer holds to zero; return their count.
+def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int]:
+    """Parameter group name -> number of inf/NaN gradient entries, for the groups that have any
+    (empty: every gradient is finite). One host sync.
 
-    Why: parameters kept at learning rate 0 (anchor positions, as in Scaffold-GS) still pass through
-    Adam, whose update 0 · m/√v is NaN once one gradient entry is inf or NaN. Such an anchor would
-    become NaN for good, drop out of every view and never be pruned. Seen on an H100 (2026-11-22,
-    SecureGS λ=3, 960×540): one bad Gaussian must cost its own update, not the model. One host sync.
+    The trainer skips a step with any such entry (no optimizer step, no densification statistics),
+    because both ways of going on damage the model:
+    - Applied, an inf or NaN reaches Adam, whose update of an anchor trained at learning rate 0
+      (its position, as in Scaffold-GS) is 0 · m/√v = NaN for good; the anchor drops out of every
+      view and is never pruned. Seen on an H100 (2026-11-22, SecureGS λ=3, 960×540).
+    - Zeroing just those entries (this project's rule until 2026-11-23) keeps their neighbours, which
+      come from the same overflow and may be huge but finite. One such gradient fills Adam's second
+      moment: the entry jumps by about 3× its learning rate, then barely moves for thousands of
+      steps. Under that rule a 1080p SecureGS run with one such step ended 8.5 dB worse than its
+      baseline outside the hidden object (H100, 2026-11-23, seed 1, 4000 iterations; seeds 0 and 2
+      had no such step and ended within 0.2 dB). That the step caused it was not isolated.
     """
-    grads = [p.grad for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
-    if not grads:
-        return 0
-    count = int(torch.stack([(~torch.isfinite(g)).sum() for g in grads]).sum())
-    if count:
-        for g in grads:
-            torch.nan_to_num_(g, nan=0.0, posinf=0.0, neginf=0.0)
-    return count
+    named = [(group.get("name", f"group {i}"), [p.grad for p in group["params"] if p.grad is not None])
+             for i, group in enumerate(optimizer.param_groups)]
+    named = [(name, grads) for name, grads in named if grads]
+    if not named:
+        return {}
+    totals = torch.stack([sum((~torch.isfinite(g)).sum() for g in grads) for _, grads in named]).tolist()
+    return {name: int(n) for (name, _), n in zip(named, totals) if n}
 
 
 def render_fps(render, cameras, device, repeats: int = 3) -> float:
