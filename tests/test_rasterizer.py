@@ -177,6 +177,17 @@ def test_opacities_exactly_zero_and_one():
     assert (ours["grad_opacities"][0::3] == 0).all()  # culled
 
 
+@pytest.mark.parametrize("radius_rule", ["opacity_aware", "tight"])
+def test_opacity_exactly_at_alpha_min(radius_rule):
+    # The opacity-aware radius takes sqrt(2 ln(o / alpha_min)), 0 at o == alpha_min, where sqrt's
+    # adjoint was 0/0: NaN opacity gradients although the radius is rounded (seen in training).
+    n = 30
+    alpha_min = torch.tensor(1.0 / 255.0, dtype=torch.float32)
+    opac = torch.stack([alpha_min, torch.nextafter(alpha_min, torch.tensor(1.0)), torch.tensor(0.6)]).repeat(10)
+    assert_matches_reference(_scene(_grid_means(n), opacities=opac, scales=_aniso(n, 0.3),
+                                    radius_rule=radius_rule))
+
+
 def test_hundreds_of_layers_on_one_pixel():
     # 600 layers along the optical axis: a translucent stack crossing several 256-Gaussian batches,
     # then opaque layers that end it before the transmittance floor.
