@@ -268,12 +268,15 @@ def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int
     - Applied, an inf or NaN reaches Adam, whose update of an anchor trained at learning rate 0
       (its position, as in Scaffold-GS) is 0 · m/√v = NaN for good; the anchor drops out of every
       view and is never pruned. Seen on an H100 (2026-11-22, SecureGS λ=3, 960×540).
-    - Zeroing just those entries (this project's rule until 2026-11-23) keeps their neighbours, which
-      come from the same overflow and may be huge but finite. One such gradient fills Adam's second
-      moment: the entry jumps by about 3× its learning rate, then barely moves for thousands of
-      steps. Under that rule a 1080p SecureGS run with one such step ended 8.5 dB worse than its
-      baseline outside the hidden object (H100, 2026-11-23, seed 1, 4000 iterations; seeds 0 and 2
-      had no such step and ended within 0.2 dB). That the step caused it was not isolated.
+    - Zeroing just those entries (this project's rule until 2026-11-23) applies the rest of a
+      gradient computed through an overflow, whose finite entries may be huge as well; one huge
+      gradient fills Adam's second moment, and the entry then barely moves for thousands of steps.
+      Mixed-precision training skips such steps for the same reason.
+    One source was found and fixed (the opacity-aware radius at opacity == alpha_min, see
+    kernels/projection.py). Under the zeroing rule a 1080p SecureGS run with one step of it ended
+    8.5 dB below its baseline outside the hidden object (H100, 2026-11-23, seed 1, 4000
+    iterations); a rerun that skipped the step ended 0.35 dB below. Whether that step caused the
+    loss was not established (GPU runs are not bitwise repeatable).
     """
     named = [(group.get("name", f"group {i}"), [p.grad for p in group["params"] if p.grad is not None])
              for i, group in enumerate(optimizer.param_groups)]
