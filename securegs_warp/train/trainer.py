@@ -263,8 +263,9 @@ def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int
     """Parameter group name -> number of inf/NaN gradient entries, for the groups that have any
     (empty: every gradient is finite). One host sync.
 
-    The trainer skips a step with any such entry (no optimizer step, no densification statistics),
-    because both ways of going on damage the model:
+    The trainer skips a step with any such entry: no optimizer step, and no densification step
+    either (neither its statistics nor, on an update step, growth and pruning, which wait for the
+    next update). Both ways of going on can damage the model:
     - Applied, an inf or NaN reaches Adam, whose update of an anchor trained at learning rate 0
       (its position, as in Scaffold-GS) is 0 · m/√v = NaN for good; the anchor drops out of every
       view and is never pruned. Seen on an H100 (2026-11-22, SecureGS λ=3, 960×540).
