@@ -205,7 +205,7 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
     for key in ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
                 "fps_hidden", "size_mb_public", "train_seconds", "psnr_hidden_flat", "hidden_learnt"):
         assert key in metrics, key
-    # the warning is printed exactly when the hidden render is no better than the bare background
+    # the warning is printed exactly when the hidden render is not 1 dB better than a flat image
     warned = "warning: the hidden payload was not learnt" in capsys.readouterr().err
     assert warned == (not metrics["hidden_learnt"])
     assert (out / "key.sealed").is_file() and not (out / "key.safetensors").exists()
