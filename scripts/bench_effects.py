@@ -2,7 +2,7 @@
 base effect set and for base + each single effect, measured side by side in one run.
 
 Rounds are interleaved (every variant once per round) so machine load falls on all alike; each number
-is the median over rounds. CUDA events on a GPU, perf_counter on the CPU (bench_rasterizer.timed).
+is the median over rounds. CUDA events on a GPU, perf_counter on the CPU (securegs_warp.benchmark.timed).
 
     python scripts/bench_effects.py                                   # CPU, quick
     python scripts/bench_effects.py --device cuda --width 1920 --height 1080 --anchors 100000
@@ -11,36 +11,48 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import io
 import os
 import statistics
-import sys
 
 import numpy as np
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_rasterizer import timed  # noqa: E402
-
-from securegs_warp.data import Camera  # noqa: E402
-from securegs_warp.effects import Effects, heads_with_neutral_effects  # noqa: E402
-from securegs_warp.io.atomic import atomic_write  # noqa: E402
-from securegs_warp.model import AnchorModel, ScaffoldHeads  # noqa: E402
-from securegs_warp.render import render_view  # noqa: E402
-from securegs_warp.secure.heads import PrivateHeads  # noqa: E402
+from securegs_warp.benchmark import timed
+from securegs_warp.config import HeadsConfig
+from securegs_warp.data import Camera
+from securegs_warp.io.atomic import atomic_write
+from securegs_warp.model import AnchorModel, ScaffoldHeads
+from securegs_warp.rasterizer import RasterOptions
+from securegs_warp.render import render_view
+from securegs_warp.scaffold_model import neutral_heads
+from securegs_warp.secure.heads import PrivateHeads
 
 FEAT, OFFSETS, BITS, CAMERAS = 32, 10, 48, 4
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One effect set: the heads' optional inputs, rasterizer flags, a background, a hidden branch."""
+
+    heads: HeadsConfig = HeadsConfig()
+    raster: dict = dataclasses.field(default_factory=dict)
+    background: bool = False
+    hidden: str | None = None  # "object" (private decoder + a second render) or "bits" (the bit head)
+
+
 VARIANTS = {
-    "base": Effects(),
-    "antialiased": Effects(antialiased=True),
-    "depth accumulated": Effects(depth="accumulated"),
-    "depth expected": Effects(depth="expected"),
-    "background": Effects(background=(1.0, 1.0, 1.0)),
-    "feature bank": Effects(feature_bank=True),
-    "appearance": Effects(appearance_dim=32, num_cameras=CAMERAS),
-    "distance inputs": Effects(opacity_dist=True, cov_dist=True, color_dist=True),
-    "hidden object": Effects(hidden={"object"}),
-    "hidden bits": Effects(hidden={"bits"}),
+    "base": Variant(),
+    "antialiased": Variant(raster={"antialiased": True}),
+    "depth accumulated": Variant(raster={"render_depth": "accumulated"}),
+    "depth expected": Variant(raster={"render_depth": "expected"}),
+    "background": Variant(background=True),
+    "feature bank": Variant(HeadsConfig(feature_bank=True)),
+    "appearance": Variant(HeadsConfig(appearance_dim=32)),
+    "distance inputs": Variant(HeadsConfig(opacity_dist=True, cov_dist=True, color_dist=True)),
+    "hidden object": Variant(hidden="object"),
+    "hidden bits": Variant(hidden="bits"),
 }
 
 
@@ -56,23 +68,26 @@ def random_model(anchors: int, device) -> AnchorModel:
     ).to(device)
 
 
-def render_fn(model, plain: ScaffoldHeads, effects: Effects, cam: Camera, device, tile_size: int):
-    """A closure rendering ``cam`` with only ``effects``' stages; returns (image [H, W, 3], alpha [H, W, 1]).
+def render_fn(model, plain: ScaffoldHeads, variant: Variant, cam: Camera, device, tile_size: int):
+    """A closure rendering ``cam`` with only ``variant``'s stages; returns (image [H, W, 3], alpha [H, W, 1]).
 
     Every variant decodes the same Gaussians: its heads are ``plain`` widened with neutral weights for
-    its effects, and a hidden decoder is a copy of them, so a time differs only by the effect's stage."""
-    heads = heads_with_neutral_effects(plain, effects)
-    private = PrivateHeads(heads, **effects.private_head_kwargs(bits=BITS)).to(device) if effects.hidden else None
-    if private is not None and private.decoder is not None:
-        private.decoder.load_state_dict(heads.state_dict())
-    background = effects.background_tensor(device)
+    its inputs, and a hidden decoder is a copy of them, so a time differs only by the effect's stage."""
+    heads = neutral_heads(plain, variant.heads, num_cameras=CAMERAS)
+    raster = RasterOptions(tile_size=tile_size, **variant.raster)
+    private = None
+    if variant.hidden is not None:
+        private = PrivateHeads(heads, bits=BITS if variant.hidden == "bits" else 0,
+                               hidden=variant.hidden == "object").to(device)
+        if private.decoder is not None:
+            private.decoder.load_state_dict(heads.state_dict())
+    background = torch.ones(3, device=device) if variant.background else None
 
     def fn():
-        out = render_view(model, heads, cam, background, camera_index=1, effects=effects, tile_size=tile_size)
+        out = render_view(model, heads, cam, background, raster, camera_index=1)
         image, alpha = out["image"], out["alpha"]
         if private is not None and private.decoder is not None:
-            hid = render_view(model, private.decoder, cam, None, offset_source=private.hidden_offsets,
-                              effects=effects, tile_size=tile_size)
+            hid = render_view(model, private.decoder, cam, None, raster, offset_source=private.hidden_offsets)
             image, alpha = image + hid["image"], alpha + hid["alpha"]
         if private is not None and private.bit_mlp is not None:
             image = image + 0.0 * private.bit_logits(model.feat).sigmoid().mean()
@@ -91,7 +106,7 @@ def main():
     ap.add_argument("--out", default="runs/bench_effects")
     args = ap.parse_args()
     device = args.device
-    tile = args.tile_size or (16 if device == "cuda" else 8)
+    tile = args.tile_size or RasterOptions.for_device(device).tile_size
     f = 0.9 * args.width
     K = np.array([[f, 0, args.width / 2], [0, f, args.height / 2], [0, 0, 1]], dtype=np.float32)
     cam = Camera("bench", np.eye(4, dtype=np.float32), K, args.width, args.height)
@@ -110,13 +125,13 @@ def main():
                 times[(name, bwd)].append(timed(fn, bwd, device, 0, 1, grads))
 
     med = {key: statistics.median(v) for key, v in times.items()}
-    rows = [{"variant": name, "effects": VARIANTS[name].describe(), "fwd_ms": med[(name, False)],
+    rows = [{"variant": name, "fwd_ms": med[(name, False)],
              "fwd_bwd_ms": med[(name, True)], "fwd_ratio": med[(name, False)] / med[("base", False)],
              "fwd_bwd_ratio": med[(name, True)] / med[("base", True)]} for name in fns]
     header = (f"{device}, {args.width}x{args.height}, {args.anchors} anchors × {OFFSETS} offsets, tile {tile}, "
               f"median of {args.rounds} interleaved rounds\n\n")
-    md = header + "| variant | effects | fwd ms | fwd+bwd ms | fwd ratio | fwd+bwd ratio |\n|---|---|---|---|---|---|\n"
-    md += "".join(f"| {r['variant']} | {r['effects']} | {r['fwd_ms']:.2f} | {r['fwd_bwd_ms']:.2f} | "
+    md = header + "| variant | fwd ms | fwd+bwd ms | fwd ratio | fwd+bwd ratio |\n|---|---|---|---|---|\n"
+    md += "".join(f"| {r['variant']} | {r['fwd_ms']:.2f} | {r['fwd_bwd_ms']:.2f} | "
                   f"{r['fwd_ratio']:.2f} | {r['fwd_bwd_ratio']:.2f} |\n" for r in rows)
     print(md)
     os.makedirs(args.out, exist_ok=True)

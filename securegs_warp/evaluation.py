@@ -1,6 +1,7 @@
-"""Held-out evaluation of a trained model: PSNR, SSIM, LPIPS when possible, FPS and size."""
+"""Held-out evaluation of a model: PSNR, SSIM, LPIPS when possible, and rendering speed."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -39,3 +40,39 @@ def image_metrics(pairs, device, with_lpips: bool = True) -> dict:
         to_net = lambda x: x.clamp(0, 1).permute(2, 0, 1)[None] * 2 - 1  # noqa: E731
         out["lpips"] = float(np.mean([float(net(to_net(a), to_net(b))) for a, b in pairs]))
     return out
+
+
+@torch.no_grad()
+def evaluate_views(render, cameras, device, timing_repeats: int = 3, with_lpips: bool = False,
+                   on_render=None) -> dict:
+    """PSNR/SSIM (/LPIPS) of ``render(cam)["image"]`` against each camera's image, and FPS.
+
+    on_render(cam, image [H, W, 3]) sees each clamped render (to save it). Returns psnr, ssim,
+    lpips (None with lpips_note when it cannot run), fps and views.
+    """
+    if not cameras:
+        raise ValueError("no held-out views to evaluate on")
+    pairs = []
+    for cam in cameras:
+        if cam.image is None:
+            raise ValueError(f"camera {cam.name!r} has no image to compare with")
+        image = render(cam)["image"].clamp(0, 1)
+        if on_render is not None:
+            on_render(cam, image)
+        pairs.append((image, torch.as_tensor(cam.image, device=device)))
+    metrics = image_metrics(pairs, device, with_lpips=with_lpips)
+    return {**metrics, "fps": render_fps(render, cameras, device, timing_repeats), "views": len(cameras)}
+
+
+def render_fps(render, cameras, device, repeats: int = 3) -> float:
+    """Frames per second of ``render(cam)`` over the cameras (after one warm-up pass)."""
+    render(cameras[0])
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        for cam in cameras:
+            render(cam)
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+    return repeats * len(cameras) / (time.perf_counter() - t0)

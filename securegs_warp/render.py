@@ -1,4 +1,4 @@
-"""Render a view of an anchor model with a set of heads: decode the visible anchors, rasterize."""
+"""Render one view of anchors with a set of heads: decode the visible anchors, rasterize."""
 from __future__ import annotations
 
 import torch
@@ -6,7 +6,7 @@ import torch
 from .data import Camera
 from .model import generate_neural_gaussians, visible_anchor_mask
 from .model.neural_gaussians import camera_center_from_viewmat
-from .rasterizer import rasterize
+from .rasterizer import RasterOptions, rasterize
 
 
 def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -15,28 +15,28 @@ def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
             torch.as_tensor(cam.K, dtype=torch.float32, device=device))
 
 
-def render_view(model, heads, cam: Camera, background: torch.Tensor, *, camera_index: int | None = None,
-                offset_source=None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
-                effects=None, **raster_options) -> dict:
-    """Decode ``model``'s anchors visible from ``cam`` with ``heads`` and rasterize them.
+def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, options: RasterOptions | None = None,
+                *, camera_index: int | None = None, offset_source=None, feature_grad: float = 1.0,
+                scaling_grad: float = 1.0) -> dict:
+    """Decode ``anchors`` (an ``AnchorModel``) visible from ``cam`` with ``heads`` and rasterize them.
 
-    offset_source: where the Gaussians sit (default: the stored public offsets; SecureGS's hidden
-    branch passes its private offset predictor). feature_grad, scaling_grad: see
-    ``generate_neural_gaussians``.
-    effects: an ``Effects`` whose rasterizer flags (antialiasing, depth) are added to ``raster_options``. Returns dict: ``image`` [H, W, 3], ``alpha``
-    [H, W, 1], ``info`` (rasterize info), ``gaussians`` (generate_neural_gaussians output).
+    background: [3] colour behind the Gaussians (None: black). options: the rasterizer's options
+    (default ``RasterOptions()``). camera_index: the camera's row of an appearance embedding (views
+    without one of their own, held-out ones, use the first camera's). offset_source: where the
+    Gaussians sit (default: the stored public offsets; SecureGS's hidden branch passes its private
+    offset predictor). feature_grad, scaling_grad: see ``generate_neural_gaussians``.
+
+    Returns dict: ``image`` [H, W, 3], ``alpha`` [H, W, 1], ``info`` (rasterize info),
+    ``gaussians`` (generate_neural_gaussians output).
     """
-    device = model.xyz.device
-    if effects is not None:
-        raster_options = {**effects.raster_options(), **raster_options}
+    device = anchors.xyz.device
     viewmat, K = camera_tensors(cam, device)
-    visible = visible_anchor_mask(model, viewmat, K, cam.width, cam.height)
-    # Views without an appearance code of their own (held-out ones) use the first camera's.
+    visible = visible_anchor_mask(anchors, viewmat, K, cam.width, cam.height)
     appearance = (camera_index or 0) if heads.appearance_dim else None
     extra = {"offset_source": offset_source} if offset_source is not None else {}
-    g = generate_neural_gaussians(model, heads, camera_center_from_viewmat(viewmat), visible,
+    g = generate_neural_gaussians(anchors, heads, camera_center_from_viewmat(viewmat), visible,
                                   camera_index=appearance, feature_grad=feature_grad,
                                   scaling_grad=scaling_grad, **extra)
     image, alpha, info = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], viewmat, K,
-                                   cam.width, cam.height, background=background, **raster_options)
+                                   cam.width, cam.height, background=background, options=options)
     return {"image": image, "alpha": alpha, "info": info, "gaussians": g}

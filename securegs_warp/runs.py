@@ -1,48 +1,29 @@
 """Run folders: what a training run writes and what ``render``/``eval``/``export`` read back.
 
-    RUN/config.json      scene spec + training config (JSON; resuming checks it)
+    RUN/config.json      the run's config tree (config.RunConfig as JSON; resuming checks it)
     RUN/log.jsonl        one JSON line per logged step
     RUN/checkpoint.pt    the latest checkpoint (tensors and numbers only, written atomically)
-    RUN/model/           point_cloud.ply + MLP files (the Scaffold-GS release)
+    RUN/model/           point_cloud.ply + MLP files (`securegs train`: the Scaffold-GS model)
+    RUN/public/          the same files (`securegs hide`: the public release)
+    RUN/key.safetensors  or key.sealed (`securegs hide`: the key)
     RUN/metrics.json     held-out metrics of the final model
     RUN/renders/         PNG renders
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from .data import SceneData, load_scene
 from .io.atomic import atomic_write
 
-
-@dataclasses.dataclass
-class SceneSpec:
-    """How to (re)build a run's scene: a built-in name or a data folder, with loader options."""
-
-    source: str = "synthetic"
-    width: int = 128
-    height: int = 96
-    n_train: int = 32
-    n_test: int = 8
-    seed: int = 0
-    hidden: str | None = None
-    level: str = "object"
-    downscale: int = 1
-
-    @property
-    def builtin(self) -> bool:
-        return not Path(self.source).is_dir()
-
-    def load(self) -> SceneData:
-        if self.builtin:
-            return load_scene(self.source, hidden=self.hidden, level=self.level, width=self.width,
-                              height=self.height, n_train=self.n_train, n_test=self.n_test, seed=self.seed)
-        return load_scene(self.source, downscale=self.downscale)
+# Everything a run writes into its folder; --force removes these and nothing else.
+RUN_FILES = ("config.json", "log.jsonl", "checkpoint.pt", "metrics.json", "eval.json", "key.safetensors",
+             "key.sealed", "export_3dgs.ply")
+RUN_FOLDERS = ("model", "public", "renders")
 
 
 class RunFolder:
@@ -52,9 +33,21 @@ class RunFolder:
     config = property(lambda self: self.path / "config.json")
     log = property(lambda self: self.path / "log.jsonl")
     checkpoint = property(lambda self: self.path / "checkpoint.pt")
-    model = property(lambda self: self.path / "model")
     metrics = property(lambda self: self.path / "metrics.json")
     renders = property(lambda self: self.path / "renders")
+
+    @property
+    def model(self) -> Path:
+        """The saved model: ``public/`` for a SecureGS container, else ``model/``."""
+        public = self.path / "public"
+        return public if public.is_dir() else self.path / "model"
+
+    def clear(self) -> None:
+        """Remove what an earlier run wrote here (the names in RUN_FILES / RUN_FOLDERS only)."""
+        for name in RUN_FILES:
+            (self.path / name).unlink(missing_ok=True)
+        for name in RUN_FOLDERS:
+            shutil.rmtree(self.path / name, ignore_errors=True)
 
     def write_json(self, path: Path, data: dict) -> None:
         self.path.mkdir(parents=True, exist_ok=True)
@@ -63,8 +56,12 @@ class RunFolder:
 
     def read_config(self) -> dict:
         if not self.config.is_file():
-            raise FileNotFoundError(f"{self.config}: not a run folder (no config.json); train one with `securegs train`")
-        return json.loads(self.config.read_text())
+            raise FileNotFoundError(f"{self.config}: not a run folder (no config.json); train one with "
+                                    "`securegs train` or `securegs hide`")
+        try:
+            return json.loads(self.config.read_text())
+        except ValueError as e:
+            raise ValueError(f"{self.config}: not valid JSON ({e})") from None
 
     def append_log(self, record: dict) -> None:
         self.path.mkdir(parents=True, exist_ok=True)
@@ -78,6 +75,13 @@ def _json_default(value):
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"cannot write {type(value).__name__} to JSON")
+
+
+def png_name(camera_name: str, prefix: str = "") -> str:
+    """A file name for a camera's render: real data names cameras by image path ("train/r_1.png"),
+    which must not become subfolders or double extensions."""
+    stem = camera_name.rsplit(".", 1)[0] if "." in camera_name.rsplit("/", 1)[-1] else camera_name
+    return prefix + stem.replace("/", "_").replace("\\", "_") + ".png"
 
 
 def save_png(path: Path, image) -> None:

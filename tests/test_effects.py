@@ -1,22 +1,27 @@
-"""Effects on demand: what a scene and a request infer, and each specialised variant against the
-general one with that effect neutral."""
+"""Effects on demand: a run builds only the heads, branches and raster outputs its config and scene
+ask for; and each specialised variant equals the general one with that effect neutral."""
 
 import numpy as np
 import pytest
 import torch
 
 from securegs_warp.data import Camera, SceneData
-from securegs_warp.effects import Effects, heads_with_neutral_effects, infer_scene_effects
+from securegs_warp.config import HeadsConfig, SecureConfig, TrainConfig
+from securegs_warp.data import make_synthetic_scene
 from securegs_warp.model import AnchorModel, ScaffoldHeads
+from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.render import render_view
+from securegs_warp.scaffold_model import build_heads, neutral_heads
+from securegs_warp.secure import SecureTrainer
 from securegs_warp.secure.heads import PrivateHeads
 from securegs_warp.secure.payload import PayloadSpec
-from securegs_warp.train.trainer import TrainConfig
+from securegs_warp.train import ScaffoldTrainer
 
 D, K = 8, 4  # feature width, offsets per anchor
 W, H = 32, 24
 # tile 8 is the CPU trainer's setting; all renders here share it so the kernels compile once per flag set
 TILE = {"tile_size": 8}
+CPU_RASTER = RasterOptions(**TILE)
 
 
 def camera():
@@ -40,64 +45,70 @@ def plain_heads():
     return ScaffoldHeads(D, K)
 
 
-def render(heads, effects=Effects(), background=None, **options):
-    return render_view(tiny_model(), heads, camera(), background, effects=effects, **TILE, **options)
+def render(heads, background=None, camera_index=None, **options):
+    return render_view(tiny_model(), heads, camera(), background, RasterOptions(**TILE, **options),
+                       camera_index=camera_index)
 
 
-# --- inference ---------------------------------------------------------------------------------------
+# --- what a run builds ------------------------------------------------------------------------------
 
-def scene(background=None, hidden_kind=None, n_cams=3):
-    cams = [camera() for _ in range(n_cams)]
-    return SceneData("s", cams, [], np.zeros((4, 3)), np.zeros((4, 3)), background=background,
-                     hidden_kind=hidden_kind)
-
-
-def test_blender_scene_on_white_asks_for_a_background():
-    effects = infer_scene_effects(scene(background=np.ones(3, np.float32)))
-    assert effects.background == (1.0, 1.0, 1.0)
-    assert "bg" in effects.describe()
-    assert torch.equal(effects.background_tensor(), torch.ones(3))
+@pytest.fixture(scope="module")
+def hidden_scene():
+    return make_synthetic_scene(hidden="mug", level="object", width=24, height=18, n_train=3, n_test=1,
+                                n_points=300)
 
 
-def test_scene_without_payload_has_no_hidden_branch():
-    effects = infer_scene_effects(scene())
-    assert effects.hidden == frozenset() and effects.background is None and effects.describe() == "base"
+def test_background_only_where_the_scene_has_one(hidden_scene):
+    """A scene with a known background (the synthetic sky, NeRF-synthetic white) is composited over
+    it; one without (photographs) renders over black, which costs nothing."""
+    config = TrainConfig(iterations=2, raster=CPU_RASTER)
+    assert torch.equal(ScaffoldTrainer(hidden_scene, config).background, torch.as_tensor(hidden_scene.background))
+    hidden_scene.background, saved = None, hidden_scene.background
+    try:
+        assert ScaffoldTrainer(hidden_scene, config).background is None
+    finally:
+        hidden_scene.background = saved
 
 
-def test_payload_gives_hidden_branches_and_public_request_drops_them():
-    effects = infer_scene_effects(scene(hidden_kind="object"), PayloadSpec.parse("object+bits:16"))
-    assert effects.hidden == {"object", "bits"}
-    assert effects.describe() == "hidden-bits+hidden-object"
-    public = effects.for_request(private=False)
-    assert public.hidden == frozenset()
-    assert effects.for_request(private=True).hidden == {"object", "bits"}
+def test_payload_gives_hidden_branches_and_the_public_render_runs_none(hidden_scene):
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=2, raster=CPU_RASTER),
+                            SecureConfig(payload="object+bits:16"))
+    private = trainer.model.private
+    assert private.decoder is not None and private.offset_mlp is not None and private.n_bits == 16
+    plain = ScaffoldTrainer(hidden_scene, TrainConfig(iterations=2, raster=CPU_RASTER))
+    plain.model.anchors.load_state_dict(trainer.model.anchors.state_dict())
+    plain.model.heads.load_state_dict(trainer.model.heads.state_dict())
+    with torch.no_grad():  # the public render of a container is a plain Scaffold-GS render
+        assert torch.equal(trainer.render(hidden_scene.test[0])["image"], plain.render(hidden_scene.test[0])["image"])
 
 
-def test_rgb_only_request_writes_no_depth():
-    effects = Effects(depth="expected")
-    assert effects.for_request().depth is None and effects.for_request().raster_options() == {}
-    assert effects.for_request(depth=True).raster_options() == {"render_depth": "expected"}
-    assert Effects().for_request(depth=True).depth == "accumulated"
+def test_rgb_only_render_writes_no_depth():
+    assert RasterOptions().render_depth is None
+    assert "depth" not in render(plain_heads())["info"]
+    assert render(plain_heads(), render_depth="expected")["info"]["depth"].shape == (H, W, 1)
 
 
-def test_config_effects_follow_the_train_config():
-    config = TrainConfig(use_feat_bank=True, appearance_dim=4, add_cov_dist=True)
-    effects = infer_scene_effects(scene(n_cams=5), config=config)
-    assert effects.config_fields() == {"use_feat_bank": True, "appearance_dim": 4, "add_opacity_dist": False,
-                                       "add_cov_dist": True, "add_color_dist": False}
-    assert effects.head_kwargs()["num_cameras"] == 5
+def test_heads_follow_the_heads_config():
+    heads = build_heads(HeadsConfig(feat_dim=D, n_offsets=K, feature_bank=True, appearance_dim=4, cov_dist=True),
+                        num_cameras=5)
+    assert heads.use_feat_bank and heads.embedding_appearance.weight.shape == (5, 4)
+    assert heads.cov_mlp[0].in_features == D + 4 and heads.opacity_mlp[0].in_features == D + 3
+    plain = build_heads(HeadsConfig(feat_dim=D, n_offsets=K))
+    assert not plain.use_feat_bank and plain.embedding_appearance is None
+    assert plain.color_mlp[0].in_features == D + 3
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"appearance_dim": 4}, "num_cameras"),
-    ({"depth": "median"}, "depth"),
-    ({"hidden": {"object", "scene"}}, "at most one"),
-    ({"hidden": {"video"}}, "unknown hidden"),
-    ({"background": (1.0, 1.0)}, "3 values"),
+@pytest.mark.parametrize("make, message", [
+    (lambda: build_heads(HeadsConfig(appearance_dim=4)), "num_cameras"),
+    (lambda: HeadsConfig(appearance_dim=-1), "appearance_dim"),
+    (lambda: RasterOptions(render_depth="median"), "render_depth"),
+    (lambda: PayloadSpec.parse("object+scene"), "at most one"),
+    (lambda: PayloadSpec.parse("video"), "unknown payload"),
+    (lambda: render(plain_heads(), background=torch.ones(2)), "background"),
 ])
-def test_bad_combinations_are_named(kwargs, message):
+def test_bad_combinations_are_named(make, message):
     with pytest.raises(ValueError, match=message):
-        Effects(**kwargs)
+        make()
 
 
 # --- specialised variant == general variant with the effect neutral ---------------------------------
@@ -106,7 +117,7 @@ def test_depth_off_equals_depth_on_image_and_alpha():
     plain = plain_heads()
     off = render(plain)
     for mode in ("accumulated", "expected"):
-        on = render(plain, Effects(depth=mode))
+        on = render(plain, render_depth=mode)
         assert on["info"]["depth"].shape == (H, W, 1) and "depth" not in off["info"]
         assert torch.allclose(on["image"], off["image"], atol=1e-6)
         assert torch.allclose(on["alpha"], off["alpha"], atol=1e-6)
@@ -116,28 +127,27 @@ def test_depth_off_equals_depth_on_image_and_alpha():
 def test_black_background_equals_no_background():
     plain = plain_heads()
     none = render(plain)
-    black = render(plain, background=Effects(background=(0.0, 0.0, 0.0)).background_tensor())
+    black = render(plain, background=torch.zeros(3))
     assert torch.allclose(black["image"], none["image"], atol=1e-6)
 
 
-@pytest.mark.parametrize("effects", [
-    Effects(feature_bank=True),
-    Effects(opacity_dist=True, cov_dist=True, color_dist=True),
-    Effects(appearance_dim=4, num_cameras=3),
-], ids=lambda e: e.describe())
-def test_head_effect_with_neutral_weights_equals_plain_heads(effects):
+@pytest.mark.parametrize("config", [
+    HeadsConfig(feature_bank=True),
+    HeadsConfig(opacity_dist=True, cov_dist=True, color_dist=True),
+    HeadsConfig(appearance_dim=4),
+], ids=["featbank", "distances", "appearance"])
+def test_head_effect_with_neutral_weights_equals_plain_heads(config):
     plain = plain_heads()
-    general = heads_with_neutral_effects(plain, effects)
+    general = neutral_heads(plain, config, num_cameras=3)
     reference, result = render(plain), render(general, camera_index=2)
     assert torch.allclose(result["image"], reference["image"], atol=1e-6)
     assert torch.allclose(result["alpha"], reference["alpha"], atol=1e-6)
 
 
 def test_bits_only_payload_builds_no_hidden_decoder_and_renders_as_plain():
-    effects = infer_scene_effects(scene(), PayloadSpec.parse("bits:16"))
-    assert effects.hidden == {"bits"}
+    spec = PayloadSpec.parse("bits:16")
+    assert spec.kind is None and spec.bits == 16
     plain = plain_heads()
-    private = PrivateHeads(plain, **effects.private_head_kwargs(bits=16))
+    private = PrivateHeads(plain, bits=spec.bits, hidden=spec.kind is not None)
     assert private.decoder is None and private.offset_mlp is None and private.n_bits == 16
-    public = render(plain, effects.for_request(private=False))
-    assert torch.equal(public["image"], render(plain_heads())["image"])
+    assert torch.equal(render(plain)["image"], render(plain_heads())["image"])

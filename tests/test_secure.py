@@ -10,11 +10,14 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import anchor_ply_properties
 from securegs_warp.io.gs_ply import read_vertex_ply
 from securegs_warp.keys import KeyFileError
-from securegs_warp.secure import PayloadSpec, SecureTrainer
+from securegs_warp.secure import PayloadSpec, SecureConfig, SecureTrainer
 from securegs_warp.secure.container import open_container, save_container
 from securegs_warp.secure.security import exposure
+from securegs_warp.rasterizer import RasterOptions
+from securegs_warp.strategies import RegionAwareStrategy
 from securegs_warp.train import TrainConfig
 
+CPU_RASTER = RasterOptions(tile_size=8)
 TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
 
 
@@ -26,7 +29,7 @@ def hidden_scene():
 @pytest.fixture(scope="module")
 def trained(hidden_scene):
     """A container hiding the mug and 48 bits, trained briefly with frequent RDO updates."""
-    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=60, tile_size=8), PayloadSpec.parse("object+bits:48"))
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=60, raster=CPU_RASTER), SecureConfig(payload="object+bits:48"))
     s = trainer.strategy
     s.start_stat, s.update_from, s.update_interval, s.update_until = 0, 0, 10, 60
     s.dbscan_min_samples = 4
@@ -61,25 +64,25 @@ def test_builtin_emblem_is_the_same_picture_at_every_resolution():
 def test_object_payload_needs_hidden_views():
     scene = make_synthetic_scene(width=24, height=18, n_train=3, n_test=1, n_points=200)
     with pytest.raises(ValueError, match="hidden views"):
-        SecureTrainer(scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"))
+        SecureTrainer(scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(payload="object"))
 
 
 def test_private_heads_mirror_public_shapes(trained):
     trainer, _ = trained
-    public = {k: v.shape for k, v in trainer.heads.state_dict().items()}
-    private = {k: v.shape for k, v in trainer.private.decoder.state_dict().items()}
+    public = {k: v.shape for k, v in trainer.model.heads.state_dict().items()}
+    private = {k: v.shape for k, v in trainer.model.private.decoder.state_dict().items()}
     assert public == private
-    d, k = trainer.model.feat_dim, trainer.model.n_offsets
-    assert trainer.private.offset_mlp[0].weight.shape == (d, d + 3)
-    assert trainer.private.offset_mlp[-1].weight.shape == (3 * k, d)
-    assert trainer.private.bit_mlp[-1].weight.shape == (48, d)
+    d, k = trainer.model.anchors.feat_dim, trainer.model.anchors.n_offsets
+    assert trainer.model.private.offset_mlp[0].weight.shape == (d, d + 3)
+    assert trainer.model.private.offset_mlp[-1].weight.shape == (3 * k, d)
+    assert trainer.model.private.bit_mlp[-1].weight.shape == (48, d)
 
 
 def test_rdo_grows_a_hidden_set_and_finds_its_box(trained, hidden_scene):
     trainer, history = trained
     state = trainer.strategy_state
-    n = trainer.model.num_anchors
-    assert state["is_hidden"].shape == (n,) and state["hid_grad_accum"].shape == (n * trainer.model.n_offsets,)
+    n = trainer.model.anchors.num_anchors
+    assert state["is_hidden"].shape == (n,) and state["hid_grad_accum"].shape == (n * trainer.model.anchors.n_offsets,)
     assert sum(h.get("grown_hidden", 0) for h in history) > 0
     assert int(state["is_hidden"].sum()) > 0
     box = state["bbox"]
@@ -88,7 +91,7 @@ def test_rdo_grows_a_hidden_set_and_finds_its_box(trained, hidden_scene):
     true_lo, true_hi = (torch.as_tensor(v) for v in hidden_scene.hidden_bbox)
     assert (torch.minimum(box[3:], true_hi) > torch.maximum(box[:3], true_lo)).all()
     # Inside the box public growth uses τ_fix / r_down.
-    tau = trainer.strategy.public_threshold(trainer.model, state)
+    tau = trainer.strategy.public_threshold(trainer.model.anchors, state)
     assert torch.isclose(tau.min(), torch.tensor(trainer.strategy.grad_threshold / trainer.strategy.r_down))
     assert history[-1]["psnr_hidden"] > history[0]["psnr_hidden"] + 3
 
@@ -97,13 +100,13 @@ def test_hidden_learnt_compares_the_render_with_a_flat_image(trained, hidden_sce
     """An untrained hidden branch scores no better than a flat image of each target's mean colour;
     the trained one does. For an image payload, whose emblem fills the frame, the flat image (not
     the bare background, 5 dB lower there) is what an untrained branch must be held against."""
-    config = TrainConfig(iterations=60, tile_size=8)
-    fresh = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object+bits:48"))
+    config = TrainConfig(iterations=60, raster=CPU_RASTER)
+    fresh = SecureTrainer(hidden_scene, config, SecureConfig(payload="object+bits:48"))
     before, after = fresh.evaluate_hidden(), trained[0].evaluate_hidden()
     assert before["psnr_hidden_flat"] == pytest.approx(after["psnr_hidden_flat"])  # same targets
     assert before["hidden_learnt"] is False and after["hidden_learnt"] is True
     assert after["psnr_hidden"] > after["psnr_hidden_flat"] + 1.0
-    image = SecureTrainer(hidden_scene, config, PayloadSpec.parse("image")).evaluate_hidden()
+    image = SecureTrainer(hidden_scene, config, SecureConfig(payload="image")).evaluate_hidden()
     assert image["hidden_learnt"] is False
 
 
@@ -114,9 +117,9 @@ def test_bits_are_decoded_exactly(trained):
 
 @pytest.mark.parametrize("length", [1, 256])
 def test_bit_lengths_1_and_256(hidden_scene, length):
-    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, tile_size=8, densify=False),
-                            PayloadSpec.parse(f"bits:{length}", seed=length))
-    assert trainer.private.decoder is None  # a bit payload renders nothing hidden
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, raster=CPU_RASTER, densify=False),
+                            SecureConfig(payload=f"bits:{length}"))
+    assert trainer.model.private.decoder is None  # a bit payload renders nothing hidden
     for _ in range(30):
         trainer.step()
     assert trainer.evaluate_hidden()["bit_accuracy"] == 1.0
@@ -126,12 +129,12 @@ def test_bits_are_read_from_the_anchor_features(hidden_scene):
     """The bit head has no bias, so it cannot output the message as a constant of its own: blank
     anchor features decode nothing, and the message is read from the features. Every anchor votes,
     so it survives losing half of them (random pruning, as in the paper's robustness study)."""
-    config = TrainConfig(iterations=40, tile_size=8, densify=False)
-    trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("bits:64", seed=3))
+    config = TrainConfig(iterations=40, raster=CPU_RASTER, densify=False)
+    trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:64"))
     for _ in range(config.iterations):
         trainer.step()
-    bits, private = trainer.payload.bits.long(), trainer.private
-    feat = trainer.model.feat.detach()
+    bits, private = trainer.payload.bits.long(), trainer.model.private
+    feat = trainer.model.anchors.feat.detach()
     assert torch.equal(private.decode_bits(feat), bits)
     half = torch.randperm(feat.shape[0], generator=torch.Generator().manual_seed(0))[: feat.shape[0] // 2]
     assert torch.equal(private.decode_bits(feat[half]), bits)
@@ -142,13 +145,13 @@ def test_bits_are_read_from_the_anchor_features(hidden_scene):
 
 def test_release_is_plain_scaffold_gs_and_holds_no_private_tensor(trained, tmp_path):
     trainer, _ = trained
-    public, key = save_container(tmp_path, trainer.model, trainer.heads, trainer.private, {"payload": "object"})
+    public, key = save_container(tmp_path, trainer.model, {"payload": "object"})
     assert sorted(p.name for p in public.iterdir()) == ["color_mlp.pt", "cov_mlp.pt", "opacity_mlp.pt",
                                                         "point_cloud.ply"]
     names = [p.name for p in read_vertex_ply(public / "point_cloud.ply").properties]
-    assert names == anchor_ply_properties(trainer.model.n_offsets, trainer.model.feat_dim)
+    assert names == anchor_ply_properties(trainer.model.anchors.n_offsets, trainer.model.anchors.feat_dim)
     release = b"".join(p.read_bytes() for p in public.iterdir())
-    for name, tensor in trainer.private.state_dict().items():
+    for name, tensor in trainer.model.private.state_dict().items():
         raw = tensor.detach().float().contiguous().numpy().tobytes()
         for start in range(0, len(raw) - 32, max(4, (len(raw) // 64) // 4 * 4)):
             assert raw[start:start + 32] not in release, f"private tensor {name} found in the release"
@@ -158,10 +161,10 @@ def test_release_is_plain_scaffold_gs_and_holds_no_private_tensor(trained, tmp_p
 
 def test_key_opens_only_its_own_container(trained, tmp_path, hidden_scene):
     trainer, _ = trained
-    public, key = save_container(tmp_path / "a", trainer.model, trainer.heads, trainer.private, {}, passphrase="s3cret")
-    opened = open_container(public, key, "s3cret")
+    public, key = save_container(tmp_path / "a", trainer.model, {}, passphrase="s3cret")
+    opened, _ = open_container(public, key, "s3cret")
     assert opened.private is not None
-    for a, b in zip(opened.private.state_dict().values(), trainer.private.state_dict().values()):
+    for a, b in zip(opened.private.state_dict().values(), trainer.model.private.state_dict().values()):
         assert torch.equal(a, b)
     with pytest.raises(KeyFileError, match="passphrase"):
         open_container(public, key, "wrong")
@@ -172,11 +175,11 @@ def test_key_opens_only_its_own_container(trained, tmp_path, hidden_scene):
     (tmp_path / "tampered.sealed").write_bytes(bytes(blob))
     with pytest.raises(KeyFileError):
         open_container(public, tmp_path / "tampered.sealed", "s3cret")
-    other = SecureTrainer(hidden_scene, TrainConfig(iterations=2, tile_size=8, seed=1), PayloadSpec.parse("object"))
-    other_public, _ = save_container(tmp_path / "b", other.model, other.heads, other.private, {})
+    other = SecureTrainer(hidden_scene, TrainConfig(iterations=2, raster=CPU_RASTER, seed=1), SecureConfig(payload="object"))
+    other_public, _ = save_container(tmp_path / "b", other.model, {})
     with pytest.raises(KeyFileError, match="another container"):
         open_container(other_public, key, "s3cret")
-    assert open_container(public).private is None  # no key: the cover scene only
+    assert open_container(public)[0].private is None  # no key: the cover scene only
 
 
 def test_exposure_measures_anchors_tracing_the_hidden_surface():
@@ -194,13 +197,13 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
     out = tmp_path / "c"
     monkeypatch.setenv("KEYPASS", "correct horse")
     bad = ["hide", "--out", str(tmp_path / "bad"), "--iterations", "2", "--quiet", "--payload", "object", *TINY]
-    assert main(bad + ["--feature-grad", "2"]) == 2
+    assert main(bad + ["--hidden-feature-grad", "2"]) == 2
     assert main(bad + ["--hidden-tau-scale", "0.5"]) == 2
     assert not (tmp_path / "bad").exists()  # refused before the run folder is written
     assert main(["hide", "--out", str(out), "--iterations", "12", "--quiet", "--payload", "object+bits:8",
-                 "--passphrase-env", "KEYPASS", "--hidden-tau-scale", "4", "--feature-grad", "0.5", *TINY]) == 0
-    record = json.loads((out / "config.json").read_text())
-    assert (record["hidden_tau_scale"], record["feature_grad"]) == (4.0, 0.5)
+                 "--passphrase-env", "KEYPASS", "--hidden-tau-scale", "4", "--hidden-feature-grad", "0.5", *TINY]) == 0
+    record = json.loads((out / "config.json").read_text())["secure"]
+    assert (record["strategy"]["hidden_tau_scale"], record["hidden_feature_grad"]) == (4.0, 0.5)
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
                 "fps_hidden", "size_mb_public", "train_seconds", "psnr_hidden_flat", "hidden_learnt"):
@@ -220,7 +223,7 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
     assert any(p.name.startswith("hidden_") for p in (revealed / "renders").iterdir())
 
     keyless = tmp_path / "k"
-    assert main(["reveal", str(out / "public"), "--out", str(keyless), *TINY]) == 0
+    assert main(["reveal", str(out / "public"), "--out", str(keyless), "--scene", "synthetic", *TINY]) == 0
     assert not any(p.name.startswith("hidden_") for p in (keyless / "renders").iterdir())
     monkeypatch.setenv("KEYPASS", "wrong")
     assert main(["reveal", str(out / "public"), "--key", str(out / "key.sealed"), "--passphrase-env", "KEYPASS",
@@ -228,42 +231,41 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
 
 
 def test_without_hdger_offsets_are_explicit_and_follow_growth(hidden_scene, tmp_path):
-    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, tile_size=8), PayloadSpec.parse("object"),
-                            hdger=False)
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, raster=CPU_RASTER), SecureConfig(payload="object", hdger=False))
     s = trainer.strategy
     s.start_stat, s.update_from, s.update_interval, s.update_until = 0, 0, 10, 30
-    assert trainer.private.offset_mlp is None
+    assert trainer.model.private.offset_mlp is None
     for _ in range(30):
         trainer.step()
-    model = trainer.model
+    model = trainer.model.anchors
     assert model.hidden_offsets.shape == model.offsets.shape  # rows added and removed with the anchors
     assert model.hidden_offsets.abs().sum() > 0  # trained
     moments = trainer.optimizer.state[model.hidden_offsets]
     assert moments["exp_avg"].shape == model.hidden_offsets.shape
     with pytest.raises(ValueError, match="HDGER"):
-        save_container(tmp_path, model, trainer.heads, trainer.private, {})
+        save_container(tmp_path, trainer.model, {})
 
 
 def test_hidden_branch_switches(hidden_scene):
     """λ overrides the payload's default; hidden_feature_grad / hidden_scaling_grad scale the share of
     ℓ_hid's gradient that reaches the public anchor features f_v / scalings l_v (0: none), leaving
     the render itself and the private heads' gradients unchanged."""
-    config = TrainConfig(iterations=5, tile_size=8)
+    config = TrainConfig(iterations=5, raster=CPU_RASTER)
     with pytest.raises(ValueError, match="hidden_weight"):
-        SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_weight=-1.0)
+        SecureTrainer(hidden_scene, config, SecureConfig(payload="object", hidden_weight=-1.0))
     for name in ("hidden_feature_grad", "hidden_scaling_grad"):  # refused before any training
         with pytest.raises(ValueError, match=name + r" must lie in \[0, 1\]"):
-            SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), **{name: 2.0})
+            SecureTrainer(hidden_scene, config, SecureConfig(payload="object", **{name: 2.0}))
     runs = {}
     for factors in ((1.0, 1.0), (0.5, 0.0), (0.0, 0.5)):
-        trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_weight=3.0,
-                                hidden_feature_grad=factors[0], hidden_scaling_grad=factors[1])
+        trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="object", hidden_weight=3.0,
+                                hidden_feature_grad=factors[0], hidden_scaling_grad=factors[1]))
         assert trainer.payload.weight == 3.0
         out = trainer.render_hidden(hidden_scene.train[0], camera_index=0)
         trainer.image_loss(out, trainer.payload.views[0]).backward()
         grad = lambda t: torch.zeros_like(t) if t.grad is None else t.grad  # noqa: E731
-        runs[factors] = (out["image"].detach(), grad(trainer.model.feat), grad(trainer.model.scaling),
-                         grad(trainer.private.offset_mlp[0].weight))
+        runs[factors] = (out["image"].detach(), grad(trainer.model.anchors.feat), grad(trainer.model.anchors.scaling),
+                         grad(trainer.model.private.offset_mlp[0].weight))
     image, feat, scaling, private = runs[(1.0, 1.0)]
     assert feat.abs().sum() > 0 and scaling.abs().sum() > 0
     for (f, s), (img, feat_f, scaling_f, private_f) in runs.items():
@@ -275,11 +277,11 @@ def test_hidden_branch_switches(hidden_scene):
 
 def test_feature_grad_until_frees_the_public_features(hidden_scene):
     """After feature_grad_until of the run no ℓ_hid gradient reaches f_v; the private heads still get theirs."""
-    config = TrainConfig(iterations=4, tile_size=8)
+    config = TrainConfig(iterations=4, raster=CPU_RASTER)
     with pytest.raises(ValueError, match=r"feature_grad_until must lie in \[0, 1\]"):
-        SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), feature_grad_until=1.5)
-    trainer = SecureTrainer(hidden_scene, config, PayloadSpec.parse("object"), hidden_feature_grad=0.5,
-                            feature_grad_until=0.5)
+        SecureTrainer(hidden_scene, config, SecureConfig(payload="object", feature_grad_until=1.5))
+    trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="object", hidden_feature_grad=0.5,
+                            feature_grad_until=0.5))
     # step() counts the step before the hidden loss runs: steps 1..4 of a 4-step run
     shares = []
     for step in range(1, 5):
@@ -292,9 +294,9 @@ def test_feature_grad_until_frees_the_public_features(hidden_scene):
         trainer.optimizer.zero_grad(set_to_none=True)
         out = trainer.render_hidden(hidden_scene.train[0], camera_index=0)
         trainer.image_loss(out, trainer.payload.views[0]).backward()
-        feat = trainer.model.feat.grad
+        feat = trainer.model.anchors.feat.grad
         feature_grads[step] = 0.0 if feat is None else float(feat.abs().sum())
-        assert trainer.private.offset_mlp[0].weight.grad.abs().sum() > 0  # the private heads learn on
+        assert trainer.model.private.offset_mlp[0].weight.grad.abs().sum() > 0  # the private heads learn on
     assert feature_grads[2] > 0 and feature_grads[3] == 0
 
 
@@ -302,8 +304,8 @@ def test_feature_grad_until_frees_the_public_features(hidden_scene):
 def test_hidden_anchors_grow_where_the_hidden_gaussians_are(hidden_scene, growth_at):
     """Γ_hid growth proposes anchors at the hidden Gaussians' mean positions (∇_hid's own
     statistics); with hidden_growth_at="public", at the public offsets' positions as before."""
-    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"))
-    model, state, strategy = trainer.model, trainer.strategy_state, trainer.strategy
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(payload="object"))
+    model, state, strategy = trainer.model.anchors, trainer.strategy_state, trainer.strategy
     strategy.hidden_growth_at = growth_at
     voxel = model.voxel_size
     target = model.xyz.detach().max(dim=0).values + 40 * voxel  # outside the scene: no public Gaussian near
@@ -331,9 +333,9 @@ def test_hidden_gradient_statistic_is_per_unit_of_hidden_loss(hidden_scene, per_
     payload's weight; hidden_grad_per_lambda=False accumulates λ·∇ (Algorithm 1's ∇ℓ_total)."""
     accum = {}
     for weight in (1.0, 10.0):
-        trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"),
-                                hidden_weight=weight,
-                                strategy_options={"hidden_every": 1, "hidden_grad_per_lambda": per_lambda})
+        trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(
+            payload="object", hidden_weight=weight,
+            strategy=RegionAwareStrategy(hidden_every=1, hidden_grad_per_lambda=per_lambda)))
         trainer.step()
         accum[weight] = trainer.strategy_state["hid_grad_accum"]
     assert accum[1.0].sum() > 0
@@ -344,17 +346,17 @@ def test_hidden_gradient_statistic_is_per_unit_of_hidden_loss(hidden_scene, per_
 def test_hidden_growth_threshold_scale(hidden_scene, tau_scale):
     """Γ_hid grows at τ_fix · hidden_tau_scale: a mean ∇_hid of 1 grows anchors at the paper's
     τ_fix and none at τ_fix · 10⁴ = 2; values below 1 are refused."""
-    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"),
-                            strategy_options={"hidden_tau_scale": tau_scale})
-    state, rows, views = trainer.strategy_state, slice(0, 8 * trainer.model.n_offsets), 100.0
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(
+                            payload="object", strategy=RegionAwareStrategy(hidden_tau_scale=tau_scale)))
+    state, rows, views = trainer.strategy_state, slice(0, 8 * trainer.model.anchors.n_offsets), 100.0
     state["hid_grad_denom"][rows] = views
     state["hid_grad_accum"][rows] = views
-    changed = trainer.strategy.adjust(trainer.model, trainer.optimizer, state, trainer.generator)
+    changed = trainer.strategy.adjust(trainer.model.anchors, trainer.optimizer, state, trainer.generator)
     assert (changed["grown_hidden"] > 0) == (tau_scale == 1.0)
     assert changed["hidden_anchors"] == changed["grown_hidden"]
     with pytest.raises(ValueError, match="hidden_tau_scale"):
-        SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"),
-                      strategy_options={"hidden_tau_scale": 0.5})
+        SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(
+                      payload="object", strategy=RegionAwareStrategy(hidden_tau_scale=0.5)))
 
 
 def test_hidden_opacity_in_pruning_statistic_is_switchable(hidden_scene):
@@ -362,8 +364,48 @@ def test_hidden_opacity_in_pruning_statistic_is_switchable(hidden_scene):
     hidden_opacity_keeps=False pruning sees the public opacity alone (same first step otherwise)."""
     accum = {}
     for keeps in (True, False):
-        trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, tile_size=8), PayloadSpec.parse("object"),
-                                strategy_options={"hidden_opacity_keeps": keeps})
+        trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(
+                                payload="object", strategy=RegionAwareStrategy(hidden_opacity_keeps=keeps)))
         trainer.step()
         accum[keeps] = trainer.strategy_state["opacity_accum"]
     assert (accum[True] >= accum[False]).all() and accum[True].sum() > accum[False].sum()
+
+
+def _write_blender_folder(scene, folder):
+    """``scene``'s cameras and images as a NeRF-synthetic (Blender) data folder."""
+    import imageio.v3 as iio
+
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV camera axes -> Blender's (y up, looking down -z)
+    for split, cams in (("train", scene.train), ("test", scene.test)):
+        (folder / split).mkdir(parents=True)
+        frames = []
+        for k, cam in enumerate(cams):
+            iio.imwrite(folder / split / f"r_{k}.png", (cam.image * 255 + 0.5).astype(np.uint8))
+            c2w = np.linalg.inv(cam.viewmat.astype(np.float64)) @ flip
+            frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": c2w.tolist()})
+        angle = 2 * np.arctan(cams[0].width / (2 * float(cams[0].K[0, 0])))
+        (folder / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+
+
+def test_reveal_needs_only_the_release_and_the_key(tmp_path, monkeypatch):
+    """The key stores the cameras and what reveal needs: with the training data deleted (and any
+    scene loading made to fail), reveal renders the hidden image and reads the bits."""
+    data, out = tmp_path / "data", tmp_path / "c"
+    _write_blender_folder(make_synthetic_scene(width=40, height=30, n_train=4, n_test=2, n_points=300), data)
+    assert main(["hide", "--scene", str(data), "--payload", "image:builtin@1+bits:8", "--iterations", "6",
+                 "--out", str(out), "--quiet"]) == 0
+    import shutil
+
+    import securegs_warp.data
+
+    shutil.rmtree(data)
+
+    def no_scene(*args, **kwargs):
+        raise AssertionError("reveal must not load a scene")
+
+    monkeypatch.setattr(securegs_warp.data, "load_scene", no_scene)
+    revealed = tmp_path / "r"
+    assert main(["reveal", str(out / "public"), "--key", str(out / "key.safetensors"), "--out", str(revealed)]) == 0
+    assert len(json.loads((revealed / "bits.json").read_text())["bits"]) == 8
+    hidden = sorted(p.name for p in (revealed / "renders").iterdir() if p.name.startswith("hidden_"))
+    assert hidden == ["hidden_train_r_1.png"]  # the image payload's own view, named as in the data

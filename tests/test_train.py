@@ -7,9 +7,11 @@ import torch
 from securegs_warp.cli import main
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import load_scaffold
+from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, psnr, ssim
 from securegs_warp.render import camera_tensors
 
+CPU_RASTER = RasterOptions(tile_size=8)
 TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
 
 
@@ -37,7 +39,7 @@ def test_schedule_scales_with_run_length():
 
 
 def _train(scene, iterations, steps=None, **config):
-    trainer = ScaffoldTrainer(scene, TrainConfig(iterations=iterations, tile_size=8, **config))
+    trainer = ScaffoldTrainer(scene, TrainConfig(iterations=iterations, raster=CPU_RASTER, **config))
     for _ in range(iterations if steps is None else steps):
         trainer.step()
     return trainer
@@ -46,13 +48,13 @@ def _train(scene, iterations, steps=None, **config):
 def test_strategy_keeps_statistics_aligned_with_anchors(tiny_scene):
     strategy = ScaffoldStrategy(start_stat=0, update_from=0, update_interval=5, update_until=100,
                                 grad_threshold=1e-5, min_opacity=0.5)
-    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=40, tile_size=8), strategy=strategy)
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=40, raster=CPU_RASTER), strategy=strategy)
     grown = pruned = 0
     for _ in range(40):
         changed = trainer.step()
         grown += changed.get("grown", 0)
         pruned += changed.get("pruned", 0)
-        n, k = trainer.model.num_anchors, trainer.model.n_offsets
+        n, k = trainer.model.anchors.num_anchors, trainer.model.anchors.n_offsets
         state = trainer.strategy_state
         assert state["grad_accum"].shape == (n * k,) and state["anchor_denom"].shape == (n,)
         for group in trainer.optimizer.param_groups:
@@ -61,12 +63,12 @@ def test_strategy_keeps_statistics_aligned_with_anchors(tiny_scene):
                 if "exp_avg" in moments:
                     assert moments["exp_avg"].shape == p.shape, group.get("name")
     assert grown > 0 and pruned > 0  # a low threshold grows, a high min opacity prunes
-    xyz = trainer.model.xyz
+    xyz = trainer.model.anchors.xyz
     assert torch.unique(xyz, dim=0).shape[0] == xyz.shape[0]  # growing never duplicates an anchor
 
 
 def test_training_reduces_loss(tiny_scene):
-    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=60, tile_size=8))
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=60, raster=CPU_RASTER))
     before = trainer.evaluate(timing_repeats=1)["psnr"]
     for _ in range(60):
         trainer.step()
@@ -78,13 +80,13 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_scene, tmp_pat
     straight = _train(tiny_scene, 24)
     first = _train(tiny_scene, 24, steps=13)
     first.save_checkpoint(tmp_path / "ckpt.pt")
-    resumed = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=24, tile_size=8))
+    resumed = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=24, raster=CPU_RASTER))
     resumed.load_checkpoint(tmp_path / "ckpt.pt")
     assert resumed.step_count == 13
     for _ in range(11):
         resumed.step()
     for name in ("xyz", "feat", "offsets", "scaling"):
-        assert torch.allclose(getattr(resumed.model, name), getattr(straight.model, name), atol=1e-6), name
+        assert torch.allclose(getattr(resumed.model.anchors, name), getattr(straight.model.anchors, name), atol=1e-6), name
     cam = tiny_scene.test[0]
     with torch.no_grad():
         assert torch.allclose(resumed.render(cam)["image"], straight.render(cam)["image"], atol=1e-5)
@@ -92,7 +94,7 @@ def test_resume_after_interruption_matches_uninterrupted_run(tiny_scene, tmp_pat
 
 def test_checkpoint_with_other_options_is_refused(tiny_scene, tmp_path):
     _train(tiny_scene, 4).save_checkpoint(tmp_path / "ckpt.pt")
-    other = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=5, tile_size=8))
+    other = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=5, raster=CPU_RASTER))
     with pytest.raises(ValueError, match="other training options"):
         other.load_checkpoint(tmp_path / "ckpt.pt")
 
@@ -147,7 +149,7 @@ def test_nonfinite_gradients_skip_the_step(tiny_scene):
     """A step with an inf or NaN gradient entry (injected here with hooks, next to a huge finite
     one) changes nothing: no parameter, no Adam moment; it is reported with the groups at fault.
     Applied, Adam would turn an anchor trained at learning rate 0 (its position) into NaN."""
-    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, tile_size=8, densify=False))
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, raster=CPU_RASTER, densify=False))
     trainer.step()  # Adam has moments for every parameter
     poison = {"xyz": float("inf"), "feat": float("nan")}
     for name, value in poison.items():
@@ -156,17 +158,17 @@ def test_nonfinite_gradients_skip_the_step(tiny_scene):
             grad[0] = value
             grad[1] = 1e30
             return grad
-        getattr(trainer.model, name).register_hook(inject)
+        getattr(trainer.model.anchors, name).register_hook(inject)
     params = [p for group in trainer.optimizer.param_groups for p in group["params"]]
     before = [p.detach().clone() for p in params]
     second_moment = lambda p: trainer.optimizer.state[p].get("exp_avg_sq")  # noqa: E731 (None: no gradient yet)
     moments = [None if second_moment(p) is None else second_moment(p).clone() for p in params]
     assert sum(m is not None for m in moments) >= 4
     stats = trainer.step()
-    d = trainer.model.feat_dim
+    d = trainer.model.anchors.feat_dim
     assert stats["nonfinite_grads"] == 3 + d and stats["nonfinite_groups"] == ["feat", "xyz"]
     for p, old, moment in zip(params, before, moments):
         assert torch.equal(p, old)
         assert (moment is None and second_moment(p) is None) or torch.equal(second_moment(p), moment)
         assert p.grad is None
-    assert "nonfinite_grads" not in ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, tile_size=8)).step()
+    assert "nonfinite_grads" not in ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, raster=CPU_RASTER)).step()

@@ -68,6 +68,23 @@ class Camera:
         rotation, translation = self.viewmat[:3, :3].astype(np.float64), self.viewmat[:3, 3].astype(np.float64)
         return (-rotation.T @ translation).astype(np.float32)
 
+    def to_record(self) -> dict:
+        """The camera without its images, as JSON-able values (a key stores the cameras it reveals with)."""
+        return {"name": self.name, "viewmat": self.viewmat.reshape(-1).tolist(), "K": self.K.reshape(-1).tolist(),
+                "width": self.width, "height": self.height}
+
+    @classmethod
+    def from_record(cls, record: dict) -> "Camera":
+        """Inverse of :meth:`to_record`; a damaged record raises DataError naming what is wrong."""
+        try:
+            cam = cls(str(record["name"]), np.reshape(record["viewmat"], (4, 4)), np.reshape(record["K"], (3, 3)),
+                      int(record["width"]), int(record["height"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise DataError(f"camera record {str(record)[:80]!r} is damaged ({e})") from None
+        if cam.width < 1 or cam.height < 1 or not (np.isfinite(cam.viewmat).all() and np.isfinite(cam.K).all()):
+            raise DataError(f"camera {cam.name!r}: non-positive size or non-finite matrices")
+        return cam
+
 
 @dataclass
 class SceneData:

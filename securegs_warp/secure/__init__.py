@@ -1,8 +1,8 @@
-"""SecureGS: private decoders, payloads, region-aware density optimization, containers and keys."""
+"""SecureGS: private decoders, payloads, the secure model and trainer, containers and keys."""
+from ..config import SecureConfig
 from .heads import PrivateHeads
+from .model import SecureModel
 from .payload import Payload, PayloadSpec, build_payload
-from .strategy import MODES, RegionAwareStrategy
-from .trainer import HIDDEN_FEATURE_GRAD, SecureTrainer
+from .trainer import SecureTrainer
 
-__all__ = ["HIDDEN_FEATURE_GRAD", "MODES", "Payload", "PayloadSpec", "PrivateHeads", "RegionAwareStrategy",
-           "SecureTrainer", "build_payload"]
+__all__ = ["Payload", "PayloadSpec", "PrivateHeads", "SecureConfig", "SecureModel", "SecureTrainer", "build_payload"]

@@ -3,16 +3,20 @@
     OUT/public/      point_cloud.ply + opacity_mlp.pt, cov_mlp.pt, color_mlp.pt: nothing else
     OUT/key.safetensors  (or key.sealed with a passphrase): the private heads + JSON metadata,
                      bound to the release by a fingerprint of its public MLPs
+
+The key's metadata holds everything ``reveal`` needs besides the release: the cameras (name, pose,
+intrinsics, size) the hidden views are rendered from, which of them show the hidden payload, the
+backgrounds and the rasterizer options. The key holder needs neither the training data nor the scene.
 """
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 from ..io import load_scaffold, save_scaffold
-from ..keys import container_fingerprint, load_key, save_key
-from ..model import AnchorModel, ScaffoldHeads
+from ..keys import KeyFileError, container_fingerprint, load_key, save_key
+from ..model import ScaffoldHeads
 from .heads import PrivateHeads
+from .model import SecureModel
 
 PUBLIC_DIR = "public"
 PLAIN_KEY, SEALED_KEY = "key.safetensors", "key.sealed"
@@ -24,38 +28,40 @@ def release_fingerprint(heads: ScaffoldHeads) -> str:
     return container_fingerprint({k: v.detach() for k, v in heads.state_dict().items()})
 
 
-def save_container(out: str | Path, model: AnchorModel, heads: ScaffoldHeads, private: PrivateHeads,
-                   metadata: dict, passphrase: str | None = None) -> tuple[Path, Path]:
-    """Write the release and the key; returns (public folder, key path)."""
+def save_container(out: str | Path, model: SecureModel, metadata: dict,
+                   passphrase: str | None = None) -> tuple[Path, Path]:
+    """Write the release (``out/public``) and the key; returns (public folder, key path).
+
+    metadata: JSON-able dict stored in the key (see the module docstring for what reveal reads).
+    """
+    private = model.private
+    if private is None:
+        raise ValueError("a container needs the private heads: this model has no key")
     if private.decoder is not None and private.offset_mlp is None:
         raise ValueError("the w/o-HDGER ablation keeps explicit hidden offsets per anchor: it is a measurement "
                          "mode and cannot be released as a container")
     out = Path(out)
     public = out / PUBLIC_DIR
-    save_scaffold(public, model, heads)
+    save_scaffold(public, model.anchors, model.heads)
     key = out / (SEALED_KEY if passphrase else PLAIN_KEY)
     (out / (PLAIN_KEY if passphrase else SEALED_KEY)).unlink(missing_ok=True)  # no stale key of the other kind
     tensors = {_PREFIX + name: value.detach() for name, value in private.state_dict().items()}
-    save_key(key, tensors, {**metadata, "heads": private.describe()}, release_fingerprint(heads), passphrase)
+    save_key(key, tensors, {**metadata, "heads": private.describe()}, release_fingerprint(model.heads), passphrase)
     return public, key
 
 
-@dataclasses.dataclass
-class Container:
-    model: AnchorModel
-    heads: ScaffoldHeads
-    private: PrivateHeads | None  # None: opened without the key
-    metadata: dict
-
-
 def open_container(public: str | Path, key: str | Path | None = None, passphrase: str | None = None,
-                   device="cpu") -> Container:
-    """Load a release and, with its key, the private heads. A key for another release, a wrong
-    passphrase or a modified key raise ``KeyFileError`` (never a garbage render)."""
-    model, heads = load_scaffold(public, device=device)
+                   device="cpu") -> tuple[SecureModel, dict]:
+    """Load a release and, with its key, the private heads: (model, the key's metadata). Without a
+    key the model has ``private=None`` and the metadata is empty. A key for another release, a
+    wrong passphrase or a modified key raise ``KeyFileError`` (never a garbage render)."""
+    anchors, heads = load_scaffold(public, device=device)
     if key is None:
-        return Container(model, heads, None, {})
+        return SecureModel(anchors, heads, None), {}
     tensors, metadata = load_key(key, passphrase, expected_fingerprint=release_fingerprint(heads))
-    private = PrivateHeads(heads, **metadata["heads"]).to(device)
-    private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})
-    return Container(model, heads, private, metadata)
+    try:
+        private = PrivateHeads(heads, **metadata["heads"]).to(device)
+        private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})
+    except (KeyError, TypeError, RuntimeError) as e:
+        raise KeyFileError(f"{key}: the key's heads do not fit this release ({e})") from None
+    return SecureModel(anchors, heads, private), metadata

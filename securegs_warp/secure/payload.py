@@ -32,30 +32,65 @@ class PayloadSpec:
 
     @classmethod
     def parse(cls, text: str, seed: int = 0) -> "PayloadSpec":
+        """Parse a payload string; anything ambiguous or unknown is refused with a ValueError.
+
+        ``bits:L`` is L random bits (drawn from ``seed``); a literal message is written with a
+        leading ``0b`` or a leading zero (``bits:0b1011``, ``bits:01101``), so that a length is never
+        read as a message or the other way round. At most one of object, scene and image.
+        """
         spec = cls(seed=seed)
-        for part in filter(None, text.split("+")):
+        if not text.strip():
+            raise ValueError(f"empty payload {text!r}")
+        seen = set()
+        for part in text.split("+"):
             name, _, arg = part.partition(":")
-            if name in ("object", "scene"):
+            if name in seen:
+                raise ValueError(f"payload {text!r} names {name} twice")
+            seen.add(name)
+            if name in ("object", "scene", "image"):
+                if spec.kind is not None:
+                    raise ValueError(f"payload {text!r}: at most one of object, scene and image per container")
+                if name == "image":
+                    path, _, view = (arg or "builtin").partition("@")
+                    if not view.isdigit() and view:
+                        raise ValueError(f"image payload {part!r}: the view after @ must be a training view index")
+                    spec.image, spec.image_view = path, int(view or 0)
+                elif arg:
+                    raise ValueError(f"payload {part!r}: {name} takes no argument")
                 spec.kind = name
-            elif name == "image":
-                path, _, view = (arg or "builtin").partition("@")
-                spec.kind, spec.image, spec.image_view = "image", path, int(view or 0)
             elif name == "bits":
-                if arg and set(arg) <= {"0", "1"} and len(arg) > 3:
-                    spec.bit_string, spec.bits = arg, len(arg)
-                else:
-                    spec.bits = int(arg or 48)
-                if not 1 <= spec.bits <= 256:
-                    raise ValueError(f"bits: length must be in [1, 256], got {spec.bits}")
+                spec.bits, spec.bit_string = _parse_bits(arg)
             else:
-                raise ValueError(f"unknown payload {part!r}: use object, scene, image[:FILE[@VIEW]], bits[:L]")
+                raise ValueError(f"unknown payload {part!r}: use object, scene, image[:FILE[@VIEW]], "
+                                 "bits[:L or :0bMESSAGE], joined with +")
         if spec.kind is None and spec.bits == 0:
             raise ValueError(f"empty payload {text!r}")
         return spec
 
     def describe(self) -> str:
+        """The payload as a string ``parse`` reads back (a literal message is not repeated here: it is
+        a secret of the key)."""
         parts = [self.kind if self.kind != "image" else f"image:{self.image}@{self.image_view}"] if self.kind else []
         return "+".join(parts + ([f"bits:{self.bits}"] if self.bits else []))
+
+
+def _parse_bits(arg: str) -> tuple[int, str | None]:
+    """(length, literal message or None) of a ``bits`` argument (see ``PayloadSpec.parse``)."""
+    literal = arg[2:] if arg.startswith("0b") else arg if arg.startswith("0") and len(arg) > 1 else None
+    if literal is not None:
+        if not literal or set(literal) - {"0", "1"}:
+            raise ValueError(f"bits:{arg}: a literal message is made of 0s and 1s (e.g. bits:0b1011)")
+        length = len(literal)
+    elif not arg:
+        length = 48
+    elif arg.isdigit():
+        length = int(arg)
+    else:
+        raise ValueError(f"bits:{arg}: give a length (bits:48) or a message (bits:0b1011)")
+    if not 1 <= length <= 256:
+        hint = f"; for the message {arg} write bits:0b{arg}" if set(arg) <= {"0", "1"} else ""
+        raise ValueError(f"bits: length must be in [1, 256], got {length}{hint}")
+    return length, literal
 
 
 @dataclasses.dataclass

@@ -12,110 +12,83 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..data import Camera, SceneData
 from .. import evaluation
-from ..model.neural_gaussians import unit_fraction
+from ..config import SecureConfig, TrainConfig
+from ..data import Camera, SceneData
 from ..train.losses import psnr
-from ..train.trainer import ScaffoldTrainer, TrainConfig
+from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
+from .model import SecureModel
 from .payload import BIT_WEIGHT, PayloadSpec, build_payload
-from .strategy import RegionAwareStrategy
-
-# Share of ℓ_hid's gradient that reaches the public anchor features f_v. The paper trains them on
-# ℓ_ori + λ·ℓ_hid whole (1). Measured on the built-in scene (object + 48 bits, README), 2000
-# iterations: at 1 the cover loses 1.25 dB (H100, 960×540) to 1.9 dB (1080p) against plain
-# Scaffold-GS; at 0.1 it loses 0.44 / 1.25–1.85 dB (two 1080p runs) and the hidden mug still renders
-# at 38.5 / 37.3–37.7 dB (at 0 it is never learnt: the private heads cannot decode it from features
-# the hidden loss does not shape). At 4000 iterations and 0.1 the 1080p cover loses 0.02–0.35 dB in
-# four runs of five.
-HIDDEN_FEATURE_GRAD = 0.1
 
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
 # branch scores at or below it; a learnt one, tens of dB above on the mug).
 HIDDEN_LEARNT_MARGIN_DB = 1.0
 
-
 class SecureTrainer(ScaffoldTrainer):
-    """``private``: the key's heads; ``payload``: the hidden targets.
+    """Trains a ``SecureModel``: the Scaffold-GS trainer plus the key's private heads and payload.
 
-    hidden_weight: λ, overriding the payload's default (payload.HIDDEN_WEIGHT).
-    hidden_feature_grad, hidden_scaling_grad: the share of ℓ_hid's gradient that reaches the
-        anchor features f_v and scalings l_v (1: all of it, as in the paper; 0: none; the features'
-        default is HIDDEN_FEATURE_GRAD). Both are public (stored in the release) and shape the public
-        Gaussians; below 1 the public loss dominates them and the hidden branch leans more on its
-        private heads.
-    feature_grad_until: the fraction of the iterations during which hidden_feature_grad applies;
-        after it no ℓ_hid gradient reaches f_v, so the public loss alone finishes the features while
-        the private heads keep learning to decode them (1: the whole run).
-    strategy_options: RegionAwareStrategy fields to override (r_down, hidden_every,
-        hidden_growth_at, ...).
+    secure: the SecureGS options (payload, λ, gradient shares, HDGER, density strategy); its
+    strategy's schedule is scaled to ``config.iterations``. Attributes beyond the base class:
+    ``secure``, ``payload`` (the hidden targets).
     """
 
-    def __init__(self, scene: SceneData, config: TrainConfig, payload: PayloadSpec, device="cpu",
-                 mode: str = "rdo", hdger: bool = True, hidden_weight: float | None = None,
-                 hidden_feature_grad: float = HIDDEN_FEATURE_GRAD, hidden_scaling_grad: float = 1.0,
-                 feature_grad_until: float = 1.0, strategy_options: dict | None = None):
-        if hidden_weight is not None and not hidden_weight >= 0.0:
-            raise ValueError(f"hidden_weight (λ) must be >= 0, got {hidden_weight}")
-        # Checked before the base class builds anything, so that bad shares fail before training.
-        self.hidden_feature_grad = unit_fraction("hidden_feature_grad", hidden_feature_grad)
-        self.hidden_scaling_grad = unit_fraction("hidden_scaling_grad", hidden_scaling_grad)
-        self.feature_grad_until = unit_fraction("feature_grad_until", feature_grad_until, "a fraction of the run")
-        options = {"mode": mode, "use_bbox": payload.kind in ("object", "image"), **(strategy_options or {})}
-        strategy = RegionAwareStrategy.for_iterations(config.iterations, **options)
-        super().__init__(scene, config, device=device, strategy=strategy)
-        self.payload = build_payload(payload, scene, self.device)
-        if hidden_weight is not None:
-            self.payload.weight = float(hidden_weight)
+    def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
+        self.secure = secure
+        self.spec = PayloadSpec.parse(secure.payload, seed=config.seed)
+        # Built before the model, so that a payload the scene cannot carry fails before training.
+        self.payload = build_payload(self.spec, scene, torch.device(device))
+        if secure.hidden_weight is not None:
+            self.payload.weight = float(secure.hidden_weight)
+        strategy = secure.strategy.scaled_to(config.iterations)
         strategy.hidden_weight = self.payload.weight  # ∇_hid per unit of ℓ_hid (RegionAwareStrategy)
-        self.private = PrivateHeads(self.heads, bits=payload.bits, offsets=hdger,
-                                    hidden=self.payload.has_images).to(self.device)
-        if self.private.decoder is not None and not hdger:
-            self.model.add_hidden_offsets()
-        self.optimizer = self._make_optimizer()  # now with the private groups
+        strategy.use_bbox = self.spec.kind in ("object", "image")
+        super().__init__(scene, config, device=device, strategy=strategy)
+
+    def _make_model(self, anchors, heads) -> SecureModel:
+        private = PrivateHeads(heads, bits=self.spec.bits, offsets=self.secure.hdger,
+                               hidden=self.payload.has_images).to(anchors.xyz.device)
+        if private.decoder is not None and not self.secure.hdger:
+            anchors.add_hidden_offsets()
+        return SecureModel(anchors, heads, private)
 
     def head_groups(self) -> dict:
-        groups = dict(self.heads.named_mlps())
-        private = getattr(self, "private", None)  # absent while the base class builds its optimizer
-        if private is not None:
-            groups.update({"private_" + name: module for name, module in private.named_mlps().items()})
+        groups = dict(self.model.heads.named_mlps())
+        groups.update({"private_" + name: module for name, module in self.model.private.named_mlps().items()})
         return groups
+
+    def config_sections(self) -> dict:
+        return {**super().config_sections(), "secure": self.secure}
 
     # -- rendering ------------------------------------------------------------------------------
 
-    def render_hidden(self, cam: Camera, camera_index: int | None = None, **raster_options) -> dict:
-        """The hidden branch's render of a view (needs the private heads: the key)."""
-        if self.private.decoder is None:
-            raise ValueError("this payload hides no image: there is no hidden view to render")
-        source = self.private.hidden_offsets if self.private.offset_mlp is not None else self._explicit_offsets
-        return self.render_branch(cam, self.private.decoder, self.payload.background, camera_index,
-                                  offset_source=source, feature_grad=self.current_feature_grad(),
-                                  scaling_grad=self.hidden_scaling_grad,
-                                  **raster_options)
+    def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None) -> dict:
+        """The hidden branch's render of a view, with the gradient shares of training ``step``
+        (default: the step counter)."""
+        return self.model.render_hidden(cam, self.config.raster, background=self.payload.background,
+                                        camera_index=camera_index, feature_grad=self.current_feature_grad(step),
+                                        scaling_grad=self.secure.hidden_scaling_grad)
 
-    def current_feature_grad(self) -> float:
+    def current_feature_grad(self, step: int | None = None) -> float:
         """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
-        if self.step_count > self.feature_grad_until * self.config.iterations:
+        step = self.step_count if step is None else step
+        if step > self.secure.feature_grad_until * self.config.iterations:
             return 0.0
-        return self.hidden_feature_grad
+        return self.secure.hidden_feature_grad
 
-    def _explicit_offsets(self, inputs) -> torch.Tensor:
-        """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
-        return self.model.hidden_offsets[inputs.anchor_index] * inputs.scaling[:, None, :3]
-
-    def extra_losses(self, index: int, loss: torch.Tensor):
-        p, extra, hidden = self.payload, {}, None
+    def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
+        p, extra = self.payload, {}
         view = index if p.views is not None else p.image_view
         if view is not None:
-            out = self.render_hidden(self.scene.train[view], camera_index=view)
+            out = self.render_hidden(self.scene.train[view], camera_index=view, step=step)
             target = p.views[view] if p.views is not None else p.image
             loss = loss + p.weight * self.image_loss(out, target)
-            hidden = (out["gaussians"], out["info"])
+            branches["hidden"] = (out["gaussians"], out["info"])
             extra["psnr_hidden"] = psnr(out["image"].detach(), target)
         if p.bits is not None:
-            logits = self.private.bit_logits(self.model.feat)
+            logits = self.model.private.bit_logits(self.model.anchors.feat)
             loss = loss + BIT_WEIGHT * F.binary_cross_entropy_with_logits(logits, p.bits.expand_as(logits))
-        return loss, hidden, extra
+        return loss, extra
 
     # -- evaluation -----------------------------------------------------------------------------
 
@@ -123,8 +96,6 @@ class SecureTrainer(ScaffoldTrainer):
     def evaluate_hidden(self) -> dict:
         """Hidden-branch metrics: PSNR/SSIM on held-out views (object, scene) or at the image's
         view, and bit accuracy."""
-        from ..train import render_fps
-
         p, out = self.payload, {}
         if p.views is not None and p.test_views is not None:
             pairs = [(self.render_hidden(c)["image"].clamp(0, 1), t) for c, t in zip(self.scene.test, p.test_views)]
@@ -149,11 +120,11 @@ class SecureTrainer(ScaffoldTrainer):
             else:
                 out["psnr_hidden_flat"] = out["hidden_learnt"] = None
             cams = self.scene.test or self.scene.train
-            out["fps_hidden"] = render_fps(self.render_hidden, cams, self.device)
+            out["fps_hidden"] = evaluation.render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:
             out["bit_accuracy"] = self.bit_accuracy()
             out["bits"] = p.bits.long().tolist()
-            out["bits_decoded"] = self.private.decode_bits(self.model.feat).tolist()
+            out["bits_decoded"] = self.model.decode_bits().tolist()
         return out
 
     @torch.no_grad()
@@ -164,14 +135,14 @@ class SecureTrainer(ScaffoldTrainer):
         without a bit payload."""
         if self.payload.bits is None:
             return None
-        decoded = self.private.decode_bits(self.model.feat if feat is None else feat)
+        decoded = self.model.decode_bits(feat)
         return float((decoded == self.payload.bits.long()).float().mean())
 
     # -- checkpoints ----------------------------------------------------------------------------
 
     def checkpoint_state(self) -> dict:
-        return {**super().checkpoint_state(), "private": self.private.state_dict()}
+        return {**super().checkpoint_state(), "private": self.model.private.state_dict()}
 
     def restore(self, state: dict, path) -> None:
-        self.private.load_state_dict(state["private"])
         super().restore(state, path)
+        self.model.private.load_state_dict(state["private"])

@@ -1,7 +1,7 @@
-"""Training: losses, learning-rate schedules, densification strategies and the trainer."""
+"""Training: losses, learning-rate schedules and the Scaffold-GS trainer."""
+from ..config import TrainConfig
+from ..strategies import ScaffoldStrategy
 from .losses import photometric_loss, psnr, ssim, volume_loss
-from .strategy import ScaffoldStrategy
-from .trainer import ScaffoldTrainer, TrainConfig, render_fps
+from .trainer import ScaffoldTrainer
 
-__all__ = ["ScaffoldStrategy", "ScaffoldTrainer", "TrainConfig", "photometric_loss", "psnr",
-           "render_fps", "ssim", "volume_loss"]
+__all__ = ["ScaffoldStrategy", "ScaffoldTrainer", "TrainConfig", "photometric_loss", "psnr", "ssim", "volume_loss"]

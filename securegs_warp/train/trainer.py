@@ -8,71 +8,29 @@ atomically, so an interrupted run resumes where it stopped.
 """
 from __future__ import annotations
 
-import dataclasses
 import io
 import time
 
 import torch
 
+from .. import evaluation
+from ..config import TrainConfig, first_difference, from_dict, to_dict
 from ..data import Camera, SceneData
-from ..effects import infer_scene_effects
-from .. import evaluation  # module import: evaluation itself imports train.losses
 from ..io.atomic import atomic_write
-from ..model import ANCHOR_PARAM_NAMES, AnchorModel, ScaffoldHeads, anchor_param_groups
-from ..render import render_view
+from ..model import ANCHOR_PARAM_NAMES, AnchorModel, anchor_param_groups
+from ..scaffold_model import ScaffoldModel, build_heads
+from ..strategies import ScaffoldStrategy
 from .losses import photometric_loss, psnr, volume_loss
 from .schedules import exponential_lr
-from .strategy import ScaffoldStrategy
-
-
-@dataclasses.dataclass
-class TrainConfig:
-    """Hyper-parameters; defaults are Scaffold-GS's (learning rates for its 30k-step runs)."""
-
-    iterations: int = 30_000
-    seed: int = 0
-    feat_dim: int = 32
-    n_offsets: int = 10
-    voxel_size: float = 0.0  # <= 0: from the sparse points' nearest-neighbour distances
-    use_feat_bank: bool = False
-    appearance_dim: int = 0
-    add_opacity_dist: bool = False
-    add_cov_dist: bool = False
-    add_color_dist: bool = False
-    ssim_weight: float = 0.2
-    volume_weight: float = 0.01
-    feature_lr: float = 0.0075
-    scaling_lr: float = 0.007
-    offset_lr_init: float = 0.01
-    offset_lr_final: float = 0.0001
-    mlp_opacity_lr: tuple = (0.002, 0.00002)
-    mlp_cov_lr: tuple = (0.004, 0.004)
-    mlp_color_lr: tuple = (0.008, 0.00005)
-    mlp_featurebank_lr: tuple = (0.01, 0.00001)
-    appearance_lr: tuple = (0.05, 0.0005)
-    mlp_offset_lr: tuple = (0.004, 0.0004)  # SecureGS's private offset predictor F_o† (no paper value)
-    mlp_bits_lr: tuple = (0.01, 0.001)  # SecureGS's bit head F_b†: 256 bits exact within ~20 steps
-    densify: bool = True
-    tile_size: int = 16  # rasterizer tile; 8 is faster on the CPU (shorter per-tile lists)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown training options: {', '.join(sorted(unknown))}")
-        d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-        return cls(**d)
 
 
 class ScaffoldTrainer:
-    """Trains a Scaffold-GS model on a ``SceneData``.
+    """Trains a Scaffold-GS model on a ``SceneData``: composes a model, an Adam optimizer and a
+    densification strategy.
 
-    Attributes: ``model`` (anchors), ``heads`` (public MLPs), ``optimizer``, ``strategy`` and its
-    ``strategy_state``, ``step_count``.
+    Attributes: ``model`` (a ``ScaffoldModel``: anchors + public heads), ``optimizer``,
+    ``strategy`` and its ``strategy_state``, ``step_count``.
+    strategy: the densification strategy to use as given; default Scaffold-GS's, scaled to the run.
     """
 
     def __init__(self, scene: SceneData, config: TrainConfig, device: str | torch.device = "cpu",
@@ -83,23 +41,26 @@ class ScaffoldTrainer:
         self.config = config
         self.device = torch.device(device)
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.background = torch.tensor(
-            scene.background if scene.background is not None else (0.0, 0.0, 0.0),
-            dtype=torch.float32, device=self.device)
+        # The scene's own background (a NeRF-synthetic object on white, the synthetic sky): the
+        # rasterizer composites it only because the scene asks for it; black costs nothing.
+        self.background = None if scene.background is None else torch.tensor(
+            scene.background, dtype=torch.float32, device=self.device)
         torch.manual_seed(config.seed)  # MLP initialisation
-        self.model = AnchorModel.from_points(scene.points, voxel_size=config.voxel_size, feat_dim=config.feat_dim,
-                                             n_offsets=config.n_offsets, device=self.device)
-        # Only the head inputs the effects ask for are built (effects.py).
-        self.effects = infer_scene_effects(scene, config=config)
-        self.heads = ScaffoldHeads(config.feat_dim, config.n_offsets, **self.effects.head_kwargs()).to(self.device)
+        anchors = AnchorModel.from_points(scene.points, voxel_size=config.voxel_size,
+                                          feat_dim=config.heads.feat_dim, n_offsets=config.heads.n_offsets,
+                                          device=self.device)
+        self.model = self._make_model(anchors, build_heads(config.heads, len(scene.train)).to(self.device))
         self.spatial_scale = float(scene.cameras_extent)
         self.optimizer = self._make_optimizer()
-        self.strategy = strategy or ScaffoldStrategy.for_iterations(config.iterations)
-        self.strategy_state = self.strategy.initialize_state(self.model)
+        self.strategy = strategy or ScaffoldStrategy().scaled_to(config.iterations)
+        self.strategy_state = self.strategy.initialize_state(self.model.anchors)
         self.step_count = 0
         self.train_seconds = 0.0  # wall time spent in step(), kept across resumes
         self._targets = [torch.as_tensor(c.image, device=self.device) for c in scene.train]
         self._order: list[int] = []
+
+    def _make_model(self, anchors, heads) -> ScaffoldModel:
+        return ScaffoldModel(anchors, heads)
 
     # -- optimisation ---------------------------------------------------------------------------
 
@@ -113,12 +74,12 @@ class ScaffoldTrainer:
 
     def head_groups(self) -> dict:
         """Name → module of every trained MLP (the SecureGS trainer adds its private ones)."""
-        return self.heads.named_mlps()
+        return self.model.heads.named_mlps()
 
     def _make_optimizer(self) -> torch.optim.Adam:
         c = self.config
-        offset_lr = c.offset_lr_init * self.spatial_scale
-        groups = anchor_param_groups(self.model, {
+        offset_lr = c.offset_lr[0] * self.spatial_scale
+        groups = anchor_param_groups(self.model.anchors, {
             "xyz": 0.0,  # Scaffold-GS keeps anchors where voxelisation put them
             "feat": c.feature_lr, "offsets": offset_lr, "hidden_offsets": offset_lr,
             "scaling": c.scaling_lr, "rotation": 0.0, "opacity": 0.0,
@@ -127,34 +88,28 @@ class ScaffoldTrainer:
             groups.append({"params": list(module.parameters()), "lr": self._mlp_schedule(name)[0], "name": name})
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
-    def _update_learning_rates(self) -> None:
-        c, step = self.config, self.step_count
+    def _update_learning_rates(self, step: int) -> None:
+        c = self.config
         for group in self.optimizer.param_groups:
             name = group.get("name")
             if name in ("offsets", "hidden_offsets"):
-                group["lr"] = exponential_lr(c.offset_lr_init * self.spatial_scale,
-                                             c.offset_lr_final * self.spatial_scale, c.iterations, step)
+                group["lr"] = exponential_lr(c.offset_lr[0] * self.spatial_scale,
+                                             c.offset_lr[1] * self.spatial_scale, c.iterations, step)
             elif name in self.head_groups():
                 group["lr"] = exponential_lr(*self._mlp_schedule(name), c.iterations, step)
 
     def _next_view(self) -> int:
-        """Training views in a random order, each once per epoch (as 3DGS picks them)."""
+        """Training views in a random order, each once per epoch (as 3DGS picks them). The view
+        stays at the end of the order until ``step`` completes."""
         if not self._order:
             self._order = torch.randperm(len(self.scene.train), generator=self.generator).tolist()
-        return self._order.pop()
+        return self._order[-1]
 
     # -- rendering ------------------------------------------------------------------------------
 
-    def render(self, cam: Camera, camera_index: int | None = None, **raster_options) -> dict:
-        """The public render of one view; see ``render_branch``."""
-        return self.render_branch(cam, self.heads, self.background, camera_index, **raster_options)
-
-    def render_branch(self, cam: Camera, heads, background, camera_index=None, offset_source=None,
-                      **raster_options) -> dict:
-        """``render_view`` with this run's tile size."""
-        raster_options.setdefault("tile_size", self.config.tile_size)
-        return render_view(self.model, heads, cam, background, camera_index=camera_index,
-                           offset_source=offset_source, **raster_options)
+    def render(self, cam: Camera, camera_index: int | None = None) -> dict:
+        """The public render of one view with this run's rasterizer options and background."""
+        return self.model.render(cam, self.config.raster, background=self.background, camera_index=camera_index)
 
     def image_loss(self, out: dict, target: torch.Tensor) -> torch.Tensor:
         """(1 − α)·L1 + α·(1 − SSIM) + β·volume for one render (the paper's ℓ_ori and ℓ_hid)."""
@@ -162,14 +117,19 @@ class ScaffoldTrainer:
         return loss + self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
 
     def step(self) -> dict:
-        """One training iteration. Returns {"loss", "psnr", "anchors", "grown", "pruned", ...}."""
+        """One training iteration. Returns {"loss", "psnr", "anchors", "grown", "pruned", ...}.
+
+        The step counter advances only once the step's work is done, so an interrupt in the middle
+        leaves the trainer at the last completed step.
+        """
         t0 = time.perf_counter()
-        self.step_count += 1
-        self._update_learning_rates()
-        index = self._next_view()
+        step = self.step_count + 1
+        self._update_learning_rates(step)
+        index = self._next_view()  # taken off the order only when the step completes
         out = self.render(self.scene.train[index], camera_index=index)
         target = self._targets[index]
-        loss, hidden, extra = self.extra_losses(index, self.image_loss(out, target))
+        branches = {"public": (out["gaussians"], out["info"])}
+        loss, extra = self.extra_losses(index, self.image_loss(out, target), branches, step)
         loss.backward()
         bad = nonfinite_gradient_counts(self.optimizer)
         changed = {}
@@ -179,20 +139,21 @@ class ScaffoldTrainer:
             extra = {**extra, "nonfinite_grads": sum(bad.values()), "nonfinite_groups": sorted(bad)}
         else:
             if self.config.densify:
-                changed = self.strategy.step_post_backward(self.model, self.optimizer, self.strategy_state,
-                                                           self.step_count, out["gaussians"], out["info"],
-                                                           generator=self.generator, hidden=hidden)
+                changed = self.strategy.step_post_backward(self.model.anchors, self.optimizer, self.strategy_state,
+                                                           step, branches, generator=self.generator)
             self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target),
-                  "anchors": self.model.num_anchors, **extra, **changed}
+                  "anchors": self.model.anchors.num_anchors, **extra, **changed}
+        self._order.pop()
+        self.step_count = step
         self.train_seconds += time.perf_counter() - t0
         return result
 
-    def extra_losses(self, index: int, loss: torch.Tensor):
-        """Hook for the hidden branch: (total loss, (gaussians, info) of a hidden render or None,
-        numbers to report). Scaffold-GS has only the public loss."""
-        return loss, None, {}
+    def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
+        """Hook for the hidden branch: (total loss, numbers to report); a hidden render adds its
+        (gaussians, info) to ``branches`` under "hidden". Scaffold-GS has only the public loss."""
+        return loss, {}
 
     @torch.no_grad()
     def evaluate(self, cameras: list[Camera] | None = None, timing_repeats: int = 3, with_lpips: bool = False,
@@ -200,29 +161,25 @@ class ScaffoldTrainer:
         """PSNR, SSIM (and LPIPS when asked and possible) on held-out views (the test split by
         default), and rendering FPS. ``on_render(cam, image [H, W, 3])`` sees each render (to save it)."""
         cameras = self.scene.test if cameras is None else cameras
-        if not cameras:
-            raise ValueError("no held-out views to evaluate on")
-        pairs = []
-        for cam in cameras:
-            image = self.render(cam)["image"].clamp(0, 1)
-            if on_render is not None:
-                on_render(cam, image)
-            pairs.append((image, torch.as_tensor(cam.image, device=self.device)))
-        metrics = evaluation.image_metrics(pairs, self.device, with_lpips=with_lpips)
-        return {**metrics, "fps": render_fps(self.render, cameras, self.device, timing_repeats),
-                "anchors": self.model.num_anchors, "views": len(cameras)}
+        metrics = evaluation.evaluate_views(self.render, cameras, self.device, timing_repeats=timing_repeats,
+                                            with_lpips=with_lpips, on_render=on_render)
+        return {**metrics, "anchors": self.model.anchors.num_anchors}
 
     # -- checkpoints ----------------------------------------------------------------------------
+
+    def config_sections(self) -> dict:
+        """Section name -> config object this trainer runs with (a checkpoint stores them)."""
+        return {"train": self.config}
 
     def checkpoint_state(self) -> dict:
         """Everything a step changes, as tensors and plain numbers (loadable with weights_only)."""
         return {
             "step": self.step_count,
             "train_seconds": self.train_seconds,
-            "config": self.config.to_dict(),
-            "voxel_size": float(self.model.voxel_size),
-            "model": self.model.state_dict(),
-            "heads": self.heads.state_dict(),
+            "config": {name: to_dict(section) for name, section in self.config_sections().items()},
+            "voxel_size": float(self.model.anchors.voxel_size),
+            "model": self.model.anchors.state_dict(),
+            "heads": self.model.heads.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "strategy": self.strategy_state,
             "generator": self.generator.get_state(),
@@ -240,15 +197,14 @@ class ScaffoldTrainer:
         self.restore(state, path)
 
     def restore(self, state: dict, path) -> None:
-        if state["config"] != self.config.to_dict():
-            raise ValueError(f"{path}: checkpoint was written with other training options; resume with the "
-                             "run's own config")
+        self._check_config(state.get("config"), path)
         model_state = state["model"]
-        self.model = AnchorModel(**{name: model_state[name] for name in ANCHOR_PARAM_NAMES},
-                                 voxel_size=state["voxel_size"])
+        anchors = AnchorModel(**{name: model_state[name] for name in ANCHOR_PARAM_NAMES},
+                              voxel_size=state["voxel_size"])
         if "hidden_offsets" in model_state:
-            self.model.hidden_offsets = torch.nn.Parameter(model_state["hidden_offsets"])
-        self.heads.load_state_dict(state["heads"])
+            anchors.hidden_offsets = torch.nn.Parameter(model_state["hidden_offsets"])
+        self.model.anchors = anchors
+        self.model.heads.load_state_dict(state["heads"])
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
         self.strategy_state = state["strategy"]
@@ -256,6 +212,22 @@ class ScaffoldTrainer:
         self._order = list(state["order"])
         self.step_count = int(state["step"])
         self.train_seconds = float(state["train_seconds"])
+
+    def _check_config(self, saved: dict | None, path) -> None:
+        """Refuse a checkpoint written with other options, naming the first field that differs."""
+        mine = self.config_sections()
+        if not isinstance(saved, dict) or set(saved) != set(mine):
+            raise ValueError(f"{path}: checkpoint was written with other training options (a different kind of "
+                             "run); resume with the run's own config")
+        for section, value in mine.items():
+            try:
+                other = from_dict(type(value), saved[section], section)
+            except ValueError as e:
+                raise ValueError(f"{path}: checkpoint was written with other training options ({e})") from None
+            field = first_difference(value, other, section)
+            if field is not None:
+                raise ValueError(f"{path}: checkpoint was written with other training options ({field} differs); "
+                                 "resume with the run's own config")
 
 
 @torch.no_grad()
@@ -268,16 +240,11 @@ def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int
     next update). Both ways of going on can damage the model:
     - Applied, an inf or NaN reaches Adam, whose update of an anchor trained at learning rate 0
       (its position, as in Scaffold-GS) is 0 · m/√v = NaN for good; the anchor drops out of every
-      view and is never pruned. Seen on an H100 (2026-11-22, SecureGS λ=3, 960×540).
-    - Zeroing just those entries (this project's rule until 2026-11-23) applies the rest of a
-      gradient computed through an overflow, whose finite entries may be huge as well; one huge
-      gradient fills Adam's second moment, and the entry then barely moves for thousands of steps.
-      Mixed-precision training skips such steps for the same reason.
-    One source was found and fixed (the opacity-aware radius at opacity == alpha_min, see
-    kernels/projection.py). Under the zeroing rule a 1080p SecureGS run with one step of it ended
-    8.5 dB below its baseline outside the hidden object (H100, 2026-11-23, seed 1, 4000
-    iterations); a rerun that skipped the step ended 0.35 dB below. Whether that step caused the
-    loss was not established (GPU runs are not bitwise repeatable).
+      view and is never pruned.
+    - Zeroing just those entries applies the rest of a gradient computed through an overflow, whose
+      finite entries may be huge as well; one huge gradient fills Adam's second moment, and the
+      entry then barely moves for thousands of steps. Mixed-precision training skips such steps for
+      the same reason.
     """
     named = [(group.get("name", f"group {i}"), [p.grad for p in group["params"] if p.grad is not None])
              for i, group in enumerate(optimizer.param_groups)]
@@ -286,17 +253,3 @@ def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int
         return {}
     totals = torch.stack([sum((~torch.isfinite(g)).sum() for g in grads) for _, grads in named]).tolist()
     return {name: int(n) for (name, _), n in zip(named, totals) if n}
-
-
-def render_fps(render, cameras, device, repeats: int = 3) -> float:
-    """Frames per second of ``render(cam)`` over the cameras (after one warm-up pass)."""
-    render(cameras[0])
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
-    t0 = time.perf_counter()
-    for _ in range(repeats):
-        for cam in cameras:
-            render(cam)
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
-    return repeats * len(cameras) / (time.perf_counter() - t0)

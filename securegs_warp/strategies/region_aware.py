@@ -20,11 +20,12 @@ Modes (the ablations of the paper's Table 4 and appendix):
 from __future__ import annotations
 
 import dataclasses
+import typing
 
 import numpy as np
 import torch
 
-from ..train.strategy import ScaffoldStrategy
+from .scaffold import ScaffoldStrategy
 
 MODES = ("rdo", "scaffold", "global", "shared")
 
@@ -34,7 +35,6 @@ class RegionAwareStrategy(ScaffoldStrategy):
     mode: str = "rdo"
     r_down: float = 4.0
     hidden_every: int = 2
-    use_bbox: bool = True  # False for a whole hidden scene: a box around it would be the whole scene
     dbscan_eps_voxels: float = 12.0  # DBSCAN radius in base voxels
     dbscan_min_samples: int = 8
     hidden_growth_at: str = "hidden"  # where Γ_hid anchors are placed: "hidden" or "public" positions
@@ -50,7 +50,11 @@ class RegionAwareStrategy(ScaffoldStrategy):
     # hidden anchors a public Gaussian with the same error would, and an image almost none).
     # hidden_grad_per_lambda=False accumulates λ·∇ as Algorithm 1 writes it (∇ℓ_total).
     hidden_grad_per_lambda: bool = True
-    hidden_weight: float = 1.0  # λ, set by SecureTrainer
+    # λ, set by SecureTrainer from its config (not an option of the strategy's own).
+    hidden_weight: typing.ClassVar[float] = 1.0
+    # Whether the hidden payload has a region to box (an object, an image); False for a whole hidden
+    # scene, whose box would be the whole scene. Set by SecureTrainer from the payload.
+    use_bbox: typing.ClassVar[bool] = True
     anchor_state_keys = ScaffoldStrategy.anchor_state_keys + ("is_hidden",)
 
     def __post_init__(self):
@@ -74,12 +78,13 @@ class RegionAwareStrategy(ScaffoldStrategy):
         state["bbox"] = torch.full((6,), float("nan"), device=model.xyz.device)  # min xyz, max xyz
         return state
 
-    def step_post_backward(self, model, optimizer, state, step, gaussians, info, generator=None, hidden=None):
-        """``hidden``: (gaussians, info) of the hidden render of this step, or None."""
+    def step_post_backward(self, model, optimizer, state, step, branches: dict, generator=None):
+        """branches: ``"public"`` and, when the step rendered one, ``"hidden"``: (gaussians, info)."""
         if step <= self.start_stat or step > self.update_until:
             return {}
         k = model.n_offsets
-        self.accumulate(state, gaussians, info, k)
+        self.accumulate(state, *branches["public"], k)
+        hidden = branches.get("hidden")
         if hidden is not None:
             g_hid, info_hid = hidden
             if self.hidden_opacity_keeps:  # an anchor that only serves the hidden branch is still useful

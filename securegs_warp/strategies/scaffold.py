@@ -1,4 +1,4 @@
-"""Anchor densification as a strategy object with a hook after backward (gsplat's ``Strategy`` style).
+"""Scaffold-GS's anchor densification as a strategy object with a hook after backward.
 
 ``ScaffoldStrategy`` is Scaffold-GS's schedule: per neural Gaussian it accumulates the screen-space
 gradient norm of its mean, per anchor the opacity its Gaussians reach; every ``update_interval``
@@ -20,6 +20,9 @@ _REFERENCE_ITERATIONS = 30_000
 
 @dataclasses.dataclass
 class ScaffoldStrategy:
+    """Scaffold-GS's densification options. The schedule (``start_stat`` .. ``update_until``) is
+    stated for Scaffold-GS's 30k-step runs; :meth:`scaled_to` fits it to a run's length."""
+
     grad_threshold: float = 0.0002
     min_opacity: float = 0.005
     success_threshold: float = 0.8
@@ -31,19 +34,21 @@ class ScaffoldStrategy:
     update_hierachy_factor: int = 4
     update_init_factor: int = 16
 
-    @classmethod
-    def for_iterations(cls, iterations: int, **overrides):
-        """Scaffold-GS's schedule scaled to a run of ``iterations`` steps (its own is for 30k).
+    def scaled_to(self, iterations: int):
+        """A copy whose schedule is this one's scaled from 30k steps to ``iterations``.
 
         The check interval shrinks with the run but not below 20 steps: growing needs a Gaussian
         to be seen in 40% of the interval's views before its gradient average is trusted.
         """
         f = iterations / _REFERENCE_ITERATIONS
-        interval = max(20, round(100 * f))
-        fields = dict(start_stat=round(500 * f), update_from=round(1500 * f), update_interval=interval,
-                      update_until=round(15_000 * f))
-        fields.update(overrides)
-        return cls(**fields)
+        return dataclasses.replace(
+            self, start_stat=round(self.start_stat * f), update_from=round(self.update_from * f),
+            update_interval=max(20, round(self.update_interval * f)), update_until=round(self.update_until * f))
+
+    @classmethod
+    def for_iterations(cls, iterations: int, **overrides):
+        """Scaffold-GS's schedule scaled to ``iterations`` steps, then ``overrides`` set as given."""
+        return dataclasses.replace(cls().scaled_to(iterations), **overrides)
 
     # -- state ---------------------------------------------------------------------------------
 
@@ -91,15 +96,15 @@ class ScaffoldStrategy:
 
     # -- hooks ----------------------------------------------------------------------------------
 
-    def step_post_backward(self, model, optimizer, state, step, gaussians, info, generator=None, hidden=None) -> dict:
+    def step_post_backward(self, model, optimizer, state, step, branches: dict, generator=None) -> dict:
         """Call after ``loss.backward()`` and before ``optimizer.step()``. Returns what changed.
 
-        ``hidden`` (the hidden branch's gaussians and info) is for SecureGS strategies; Scaffold-GS
-        densifies from the public render alone.
+        branches: name -> (gaussians, info) of each render of the step: ``"public"`` always,
+        ``"hidden"`` for SecureGS. Scaffold-GS densifies from the public render alone.
         """
         if step <= self.start_stat or step > self.update_until:
             return {}
-        self.accumulate(state, gaussians, info, model.n_offsets)
+        self.accumulate(state, *branches["public"], model.n_offsets)
         if step > self.update_from and step % self.update_interval == 0:
             return self.adjust(model, optimizer, state, generator)
         return {}

@@ -1,0 +1,42 @@
+"""``securegs`` command line. train, render, eval, export: the Scaffold-GS engine (cli.train);
+hide, reveal, demo: SecureGS (cli.secure); what they share: cli.common."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from ..keys import KeyFileError
+from . import secure, train
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        release = version("securegs-warp")
+    except PackageNotFoundError:
+        release = "unknown"
+    parser = argparse.ArgumentParser(prog="securegs", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"securegs-warp {release}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    train.add_parsers(sub)
+    secure.add_parsers(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    t0 = time.perf_counter()
+    try:
+        code = args.func(args)
+    except (ValueError, FileNotFoundError, KeyFileError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if code == 0 and not getattr(args, "quiet", False):
+        print(f"done in {time.perf_counter() - t0:.1f} s")
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,229 @@
+"""What every ``securegs`` command shares: options that parse into the config tree, the device,
+run folders, the training loop with its checkpoints, and printing metrics."""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import signal
+import sys
+
+import torch
+
+from ..config import RunConfig, SecureConfig, apply_overrides, field_paths, first_difference, from_dict, to_dict
+from ..rasterizer import RasterOptions
+from ..runs import RunFolder
+
+
+class CommandError(ValueError):
+    """A command cannot go on; the message says why and what to do (printed as ``error: ...``)."""
+
+
+def resolve_device(name: str | None) -> torch.device:
+    """``name`` as a torch device this torch can use (default: CUDA when present, else the CPU)."""
+    if name is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise CommandError(f"--device {name!r} is not a device name (use cpu or cuda[:N])") from None
+    if device.type == "cpu":
+        return device
+    if device.type != "cuda":
+        raise CommandError(f"--device {name}: only cpu and cuda are supported")
+    if not torch.cuda.is_available():
+        raise CommandError(f"--device {name}: this torch build has no usable CUDA device; use --device cpu")
+    if device.index is not None and device.index >= torch.cuda.device_count():
+        raise CommandError(f"--device {name}: there are only {torch.cuda.device_count()} CUDA device(s)")
+    return device
+
+
+def quiet_warp() -> None:
+    """Warp without its banner and module-load lines (they would interleave with the progress bar)."""
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING  # Warp >= 1.19 (the project's minimum): `quiet` is gone
+    wp.init()
+
+
+# ---------------------------------------------------------------------------------------------
+# Options that are config fields: each flag names the field it sets; type and default come from it
+# ---------------------------------------------------------------------------------------------
+
+# (flag, config field, help). Values are parsed by the config tree, so a bad one is refused with
+# the field's own message; a flag left out keeps the config's default.
+SCENE_FLAGS = (
+    ("--scene", "scene.source", "built-in scene (synthetic, room, garden) or a COLMAP / NeRF-synthetic folder"),
+    ("--width", "scene.width", "synthetic scenes: image width in pixels"),
+    ("--height", "scene.height", "synthetic scenes: image height in pixels"),
+    ("--train-views", "scene.n_train", "synthetic scenes: training views"),
+    ("--test-views", "scene.n_test", "synthetic scenes: held-out views (metrics are computed on them)"),
+    ("--downscale", "scene.downscale", "real data: image downscale factor"),
+)
+TRAIN_FLAGS = (
+    ("--iterations", "train.iterations", "training steps"),
+    ("--seed", "train.seed", "random seed (scene generation, initialisation, view order, growth draws)"),
+    ("--tile-size", "train.raster.tile_size", "rasterizer tile: 8, 16 or 32 (default: 8 on the CPU, 16 on CUDA)"),
+)
+HEAD_FLAGS = (
+    ("--feat-bank", "train.heads.feature_bank", "Scaffold-GS feature bank"),
+    ("--appearance-dim", "train.heads.appearance_dim", "per-camera appearance embedding of this width (0: none)"),
+)
+
+
+def add_config_flags(parser: argparse.ArgumentParser, flags, defaults: dict | None = None) -> None:
+    """One argparse option per (flag, field, help); ``defaults`` {field: value} overrides the
+    config's default in the help text and when the flag is left out."""
+    types = field_paths(RunConfig(secure=SecureConfig()))
+    for flag, field, helptext in flags:
+        default = (defaults or {}).get(field, _default_of(field))
+        if types[field] is bool:
+            parser.add_argument(flag, dest=field, action="store_const", const=True, default=None, help=helptext)
+        else:
+            parser.add_argument(flag, dest=field, default=None, metavar=field.rsplit(".", 1)[-1].upper(),
+                                help=f"{helptext} (default: {default})")
+
+
+def _default_of(field: str):
+    value = RunConfig(secure=SecureConfig())
+    for part in field.split("."):
+        value = getattr(value, part)
+    return value
+
+
+def config_from_args(args, base: RunConfig, defaults: dict | None = None, device=None) -> RunConfig:
+    """``base`` with the command's defaults and every config flag the user gave applied; the
+    rasterizer tile follows the device unless ``--tile-size`` was given."""
+    given = {name: value for name, value in vars(args).items() if "." in name and value is not None}
+    config = apply_overrides(base, {**(defaults or {}), **given})
+    if "train.raster.tile_size" not in given and device is not None:
+        raster = RasterOptions.for_device(device, **{k: v for k, v in to_dict(config.train.raster).items()
+                                                     if k != "tile_size"})
+        config = dataclasses.replace(config, train=dataclasses.replace(config.train, raster=raster))
+    return config
+
+
+def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
+    """Options of a command that trains into a run folder."""
+    p.add_argument("--out", default=default_out, help=f"run folder to write (default: {default_out})")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--force", action="store_true",
+                   help="start over in --out, replacing the files an earlier run wrote there (nothing else)")
+    p.add_argument("--log-every", type=int, default=50, help="steps between lines of log.jsonl (default: 50)")
+    p.add_argument("--checkpoint-every", type=int, default=200,
+                   help="steps between checkpoints (default: 200); one is also written at the end and on Ctrl-C")
+    p.add_argument("--device", help="cpu or cuda[:N] (default: cuda when available)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def check_run_arguments(args) -> None:
+    for name in ("log_every", "checkpoint_every"):
+        if getattr(args, name) < 1:
+            raise CommandError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Run folders and the training loop
+# ---------------------------------------------------------------------------------------------
+
+
+def prepare_run(run: RunFolder, config: RunConfig, args) -> bool:
+    """Decide whether to resume (True) or start afresh (False); refuse to mix runs or to touch a
+    folder that is not one of ours."""
+    if run.path.exists() and not run.path.is_dir():
+        raise CommandError(f"--out {run.path} is a file, not a folder")
+    if args.resume and run.checkpoint.is_file():
+        saved = from_dict(RunConfig, run.read_config())
+        field = first_difference(config, saved)
+        if field is not None:
+            raise CommandError(f"{run.config}: the run was made with another {field} "
+                               f"({_lookup(saved, field)!r}, now {_lookup(config, field)!r}); resume with the same "
+                               "options")
+        return True
+    if run.config.is_file() and not args.force:
+        raise CommandError(f"{run.path} already holds a run; add --resume to continue it or --force to start over")
+    if not run.config.is_file() and run.path.is_dir() and any(run.path.iterdir()):
+        raise CommandError(f"--out {run.path} is a folder with other files in it (not a securegs run); "
+                           "choose a new or empty folder")
+    run.clear()
+    return False
+
+
+def _lookup(config, field: str):
+    for part in field.split("."):
+        config = getattr(config, part, None)
+    return to_dict(config) if dataclasses.is_dataclass(config) else config
+
+
+def start_training(trainer, run: RunFolder, config: RunConfig, resume: bool, args, finish) -> int:
+    if resume:
+        trainer.load_checkpoint(run.checkpoint)
+        print(f"resuming {run.path} at step {trainer.step_count}")
+    run.write_json(run.config, to_dict(config))
+    return train_loop(trainer, run, args, finish)
+
+
+@contextlib.contextmanager
+def _interrupt_between_steps():
+    """Ctrl-C (SIGINT) and SIGTERM set a flag instead of stopping a step half-way; the loop checks
+    it between steps, so the checkpoint it then writes is of a whole step."""
+    stop = {"signal": None}
+
+    def handler(signum, _frame):
+        stop["signal"] = signum
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def train_loop(trainer, run: RunFolder, args, finish) -> int:
+    """Step the trainer to its iteration count with a progress bar, logs and checkpoints."""
+    from tqdm import tqdm
+
+    total = trainer.config.iterations
+    bar = tqdm(total=total, initial=trainer.step_count, desc="train", unit="step", dynamic_ncols=True,
+               disable=args.quiet)
+    with _interrupt_between_steps() as stop:
+        while trainer.step_count < total:
+            try:
+                stats = trainer.step()
+            except KeyboardInterrupt:  # raised inside a step: the trainer is still at the last whole step
+                stop["signal"], stats = signal.SIGINT, None
+            if stats is None:
+                bar.close()
+                return _interrupted(trainer, run)
+            bar.update(1)
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", anchors=stats["anchors"])
+            step = trainer.step_count
+            if step % args.log_every == 0 or step == total or "grown" in stats or "nonfinite_grads" in stats:
+                run.append_log({"step": step, "seconds": round(trainer.train_seconds, 2), **stats})
+            if step % args.checkpoint_every == 0:
+                trainer.save_checkpoint(run.checkpoint)
+            if stop["signal"] is not None:
+                bar.close()
+                return _interrupted(trainer, run)
+    bar.close()
+    trainer.save_checkpoint(run.checkpoint)
+    finish()
+    return 0
+
+
+def _interrupted(trainer, run: RunFolder) -> int:
+    trainer.save_checkpoint(run.checkpoint)
+    print(f"\ninterrupted at step {trainer.step_count}; checkpoint saved. Continue with the same command and "
+          "--resume.", file=sys.stderr)
+    return 130
+
+
+def print_metrics(metrics: dict) -> None:
+    keys = ("psnr", "ssim", "lpips", "fps", "size_mb", "psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden",
+            "bit_accuracy", "fps_public", "fps_hidden", "size_mb_public", "anchors", "train_seconds")
+    print("  ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics.get(k), float) else f"{k}={metrics.get(k)}"
+                    for k in keys if k in metrics))
+    if metrics.get("lpips_note"):
+        print(metrics["lpips_note"])
+

@@ -1,0 +1,137 @@
+"""Side by side: SecureGS variants against the plain Scaffold-GS baseline on the same scene and budget.
+
+What ``scripts/secure_vs_baseline.py`` reports and the README's fidelity and leakage conclusions rest
+on: the variant syntax, the training loop that records what went wrong, the public PSNR outside and
+inside the hidden object's footprint, the release size, and the report tables.
+
+A variant is ``MODE[:FIELD=VALUE]...``: the density mode (``rdo``, ``scaffold``, ``global``,
+``shared``), then any ``SecureConfig`` field by name, or by dotted path when a name is not unique
+(``hidden_weight=1``, ``hidden_feature_grad=0.3``, ``feature_grad_until=0.5``, ``hdger=false``,
+``r_down=16``, ``hidden_tau_scale=inf``, ``strategy.hidden_growth_at=public``).
+"""
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .config import SecureConfig, apply_overrides
+from .io.atomic import atomic_write
+from .secure.security import exposure
+from .strategies import MODES
+
+COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
+           "ssim_hidden", "hidden_learnt", "bit_accuracy", "bit_accuracy_on_baseline", "fps_public",
+           "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
+
+
+def parse_variant(text: str, base: SecureConfig) -> tuple[str, SecureConfig]:
+    """``MODE[:FIELD=VALUE]...`` -> (row label, ``base`` with the mode and fields set).
+
+    Raises ValueError naming an unknown mode, a malformed option or an unknown field."""
+    mode, *options = text.split(":")
+    if mode not in MODES:
+        raise ValueError(f"variant {text!r}: mode must be one of {', '.join(MODES)}, got {mode!r}")
+    overrides = {"strategy.mode": mode}
+    for option in options:
+        name, sep, value = option.partition("=")
+        if not sep or not name or not value:
+            raise ValueError(f"variant {text!r}: option {option!r} is not FIELD=VALUE")
+        overrides[name] = value
+    config = apply_overrides(base, overrides)
+    notes = ([] if mode == "rdo" else [mode]) + options
+    return "SecureGS" + (f" ({', '.join(notes)})" if notes else ""), config
+
+
+def train(trainer, label: str) -> dict:
+    """Run the trainer's whole budget. Returns ``nonfinite_steps`` (steps with a non-finite gradient,
+    skipped by the trainer), ``nonfinite_at`` ([step, [parameter groups at fault]] of each) and
+    ``train_psnr_per_100`` (the mean training-view PSNR of every 100 steps, to see when a run went
+    wrong)."""
+    t0 = time.perf_counter()
+    nonfinite_at, trace, window = [], [], []
+    while trainer.step_count < trainer.config.iterations:
+        stats = trainer.step()
+        window.append(stats["psnr"])
+        if len(window) == 100:
+            trace.append(round(float(np.mean(window)), 2))
+            window = []
+        if "nonfinite_grads" in stats:
+            nonfinite_at.append([trainer.step_count, stats["nonfinite_groups"]])
+    print(f"{label}: {trainer.config.iterations} steps in {time.perf_counter() - t0:.0f} s, "
+          f"{trainer.model.anchors.num_anchors} anchors, {len(nonfinite_at)} steps with non-finite gradients "
+          f"{nonfinite_at or ''}", flush=True)
+    return {"nonfinite_steps": len(nonfinite_at), "nonfinite_at": nonfinite_at, "train_psnr_per_100": trace}
+
+
+class RegionErrors:
+    """Public held-out PSNR outside and inside the hidden object's footprint (its alpha in each test
+    view, dilated by 1% of the width): where the cover scene loses fidelity to the hidden branch.
+    Fed by ``evaluate(on_render=...)`` with the renders it makes anyway; PSNR of the squared error
+    pooled over all views' pixels of the region. Also each view's PSNR (``per_view``), to tell one
+    broken view from a model that is worse everywhere."""
+
+    def __init__(self):
+        self.sums = {"off": [0.0, 0], "on": [0.0, 0]}
+        self.per_view = []
+
+    def __call__(self, cam, image: torch.Tensor) -> None:
+        """cam: a Camera with ``image`` and ``hidden_alpha``; image: the render [H, W, 3]."""
+        err = ((image - torch.as_tensor(cam.image, device=image.device)) ** 2).mean(dim=-1)
+        self.per_view.append(round(float(-10.0 * torch.log10(err.mean())), 2))
+        alpha = torch.as_tensor(cam.hidden_alpha[..., 0], device=image.device)
+        r = max(1, cam.width // 100)
+        on = torch.nn.functional.max_pool2d((alpha > 0.01).float()[None, None], 2 * r + 1, 1, r)[0, 0] > 0
+        for name, mask in (("on", on), ("off", ~on)):
+            self.sums[name][0] += float(err[mask].sum())
+            self.sums[name][1] += int(mask.sum())
+
+    def psnr(self) -> dict:
+        """``psnr_public_off_hidden`` / ``_on_hidden``: None for an empty region (a hidden scene
+        covers every pixel), inf for a region rendered exactly."""
+        return {f"psnr_public_{name}_hidden": None if count == 0 else
+                (-10.0 * np.log10(total / count) if total > 0 else float("inf"))
+                for name, (total, count) in self.sums.items()}
+
+
+def release_mb(model) -> float:
+    """Size in MB of the public release (point_cloud.ply + MLPs) of a ``ScaffoldModel``."""
+    with tempfile.TemporaryDirectory() as d:
+        model.save(d)
+        return sum(p.stat().st_size for p in Path(d).iterdir()) / 1e6
+
+
+def public_row(trainer, training: dict, scene, radius: float) -> dict:
+    """The columns every model has: public held-out metrics (with RegionErrors' PSNR outside/inside
+    the hidden footprint and per view), release size, anchors, training time and ``train``'s
+    columns, and the anchor cloud's exposure."""
+    regions = RegionErrors()
+    ev = trainer.evaluate(on_render=regions)
+    xyz = trainer.model.anchors.xyz.detach().cpu().numpy()
+    return {"psnr_public": ev["psnr"], **regions.psnr(), "psnr_public_per_view": regions.per_view,
+            "ssim_public": ev["ssim"], "fps_public": ev["fps"], "size_mb": release_mb(trainer.model),
+            "anchors": ev["anchors"], "train_seconds": trainer.train_seconds, **training,
+            "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
+
+
+def markdown_row(label: str, row: dict) -> str:
+    cells = [f"{row[c]:.4g}" if isinstance(row.get(c), float) else str(row.get(c, "–")) for c in COLUMNS]
+    e = row["exposure"]
+    return f"| {label} | " + " | ".join(cells) + f" | {e['surface_fraction']:.3f} | {e['coverage']:.3f} |"
+
+
+def write_report(out: Path, meta: dict, rows: dict) -> str:
+    """secure_vs_baseline.json and .md (atomically, after every model, so a later failure loses
+    nothing); returns the markdown table."""
+    lines = ["| model | " + " | ".join(COLUMNS) + " | surface fraction | coverage |",
+             "|---" * (len(COLUMNS) + 3) + "|"] + [markdown_row(label, r) for label, r in rows.items()]
+    table = (f"{meta['device']}, {meta['width']}×{meta['height']}, {meta['iterations']} iterations, hidden "
+             f"{meta['hidden']}, payload {meta['payload']}\n\n" + "\n".join(lines))
+    atomic_write(out / "secure_vs_baseline.json", lambda f: f.write(json.dumps({"meta": meta, "rows": rows},
+                                                                               indent=1).encode()))
+    atomic_write(out / "secure_vs_baseline.md", lambda f: f.write((table + "\n").encode()))
+    return table

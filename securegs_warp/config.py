@@ -1,0 +1,307 @@
+"""The config tree: every option of a run, each with one name and one home.
+
+    RunConfig
+    ├── scene: SceneSpec            what to train on (a built-in scene or a data folder)
+    ├── train: TrainConfig          Scaffold-GS training
+    │   ├── heads: HeadsConfig      which head inputs exist (feature bank, appearance, distances)
+    │   └── raster: RasterOptions   the rasterizer's options (tile size, antialiasing, ...)
+    └── secure: SecureConfig | None SecureGS: payload, λ, gradient shares, HDGER
+        └── strategy: RegionAwareStrategy   density optimisation (mode, r_down, ...)
+
+The CLI flags, ``config.json``, checkpoints, key metadata and the scripts' variants all go through
+:func:`to_dict` / :func:`from_dict` and :func:`apply_overrides`, by field name. A field that is off
+builds nothing: the heads get an input only when its flag is set, and each raster flag selects its
+own compiled kernels, so a scene pays only for the effects it asks for.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from pathlib import Path
+
+from .rasterizer import RasterOptions
+from .strategies import RegionAwareStrategy
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadsConfig:
+    """The shapes and optional inputs of Scaffold-GS's MLP heads (``ScaffoldHeads``).
+
+    feat_dim: d, anchor feature width and MLP hidden width. n_offsets: k, neural Gaussians per anchor.
+    feature_bank: blend the feature at three resolutions with view-dependent weights.
+    appearance_dim: width of a per-training-camera appearance code fed to the colour MLP (0: none).
+    opacity_dist, cov_dist, color_dist: also feed the anchor-camera distance to that MLP.
+    """
+
+    feat_dim: int = 32
+    n_offsets: int = 10
+    feature_bank: bool = False
+    appearance_dim: int = 0
+    opacity_dist: bool = False
+    cov_dist: bool = False
+    color_dist: bool = False
+
+    def __post_init__(self):
+        if self.feat_dim < 1 or self.n_offsets < 1:
+            raise ValueError(f"feat_dim and n_offsets must be >= 1, got {self.feat_dim}, {self.n_offsets}")
+        if self.appearance_dim < 0:
+            raise ValueError(f"appearance_dim must be >= 0, got {self.appearance_dim}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Scaffold-GS training; defaults are Scaffold-GS's (learning rates for its 30k-step runs).
+
+    Learning-rate pairs are (initial, final) of an exponential schedule over the run.
+    """
+
+    iterations: int = 30_000
+    seed: int = 0
+    voxel_size: float = 0.0  # <= 0: from the sparse points' nearest-neighbour distances
+    heads: HeadsConfig = dataclasses.field(default_factory=HeadsConfig)
+    raster: RasterOptions = dataclasses.field(default_factory=RasterOptions)
+    ssim_weight: float = 0.2
+    volume_weight: float = 0.01
+    feature_lr: float = 0.0075
+    scaling_lr: float = 0.007
+    offset_lr: tuple = (0.01, 0.0001)  # times the scene's camera extent
+    mlp_opacity_lr: tuple = (0.002, 0.00002)
+    mlp_cov_lr: tuple = (0.004, 0.004)
+    mlp_color_lr: tuple = (0.008, 0.00005)
+    mlp_featurebank_lr: tuple = (0.01, 0.00001)
+    appearance_lr: tuple = (0.05, 0.0005)
+    mlp_offset_lr: tuple = (0.004, 0.0004)  # SecureGS's private offset predictor F_o† (no paper value)
+    mlp_bits_lr: tuple = (0.01, 0.001)  # SecureGS's bit head F_b†: 256 bits exact within ~20 steps
+    densify: bool = True
+
+    def __post_init__(self):
+        if self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+
+
+@dataclasses.dataclass(frozen=True)
+class SecureConfig:
+    """SecureGS on top of a ``TrainConfig``.
+
+    payload: what is hidden (``PayloadSpec`` syntax: ``object``, ``scene``, ``image[:FILE[@VIEW]]``,
+        ``bits[:L or :0101...]``, joined with ``+``).
+    hidden_weight: λ of ℓ_ori + λ·ℓ_hid; None takes the payload's default (payload.HIDDEN_WEIGHT).
+    hidden_feature_grad, hidden_scaling_grad: the share of ℓ_hid's gradient that reaches the public
+        anchor features f_v and scalings l_v (1: all of it, as in the paper; 0: none). Both are
+        public attributes; below 1 the public loss dominates them and the cover stays closer to
+        plain Scaffold-GS, while the private heads carry more of the hidden payload. At 0 the
+        hidden branch is never learnt (the private heads cannot decode it from features nothing
+        shapes for it); docs/results.md has the measured trade-off behind the default 0.1.
+    feature_grad_until: the fraction of the run during which hidden_feature_grad applies (after it
+        the public loss alone finishes the features).
+    hdger: the paper's hybrid decoupled Gaussian encryption: hidden offsets come from the private
+        MLP F_o†; False ("w/o HDGER", an ablation) stores explicit hidden offsets per anchor, which
+        cannot be released.
+    strategy: the region-aware density strategy and its mode (rdo, scaffold, global, shared).
+    """
+
+    payload: str = "object+bits:48"
+    hidden_weight: float | None = None
+    hidden_feature_grad: float = 0.1
+    hidden_scaling_grad: float = 1.0
+    feature_grad_until: float = 1.0
+    hdger: bool = True
+    strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
+
+    def __post_init__(self):
+        if self.hidden_weight is not None and not self.hidden_weight >= 0.0:
+            raise ValueError(f"hidden_weight (λ) must be >= 0, got {self.hidden_weight}")
+        for name, meaning in (("hidden_feature_grad", "a share of a gradient"),
+                              ("hidden_scaling_grad", "a share of a gradient"),
+                              ("feature_grad_until", "a fraction of the run")):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must lie in [0, 1] ({meaning}), got {getattr(self, name)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneSpec:
+    """How to (re)build a run's scene: a built-in name or a data folder, with loader options.
+
+    source: a built-in scene name (synthetic, room, garden) or a COLMAP / Blender folder (stored as
+    an absolute path, so a run can be evaluated from another working directory).
+    width, height, n_train, n_test, seed: synthetic scenes only. hidden, level: what the synthetic
+    scene renders as hidden views (an object or scene name, a mesh file), and whether a hidden
+    object stands alone ("object") or inside the scene ("scene"). downscale: real data only.
+    """
+
+    source: str = "synthetic"
+    width: int = 128
+    height: int = 96
+    n_train: int = 32
+    n_test: int = 8
+    seed: int = 0
+    hidden: str | None = None
+    level: str = "object"
+    downscale: int = 1
+
+    def __post_init__(self):
+        for name in ("width", "height", "n_train", "downscale"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.n_test < 0:
+            raise ValueError(f"n_test must be >= 0, got {self.n_test}")
+        if Path(self.source).is_dir() and not Path(self.source).is_absolute():
+            object.__setattr__(self, "source", str(Path(self.source).resolve()))
+
+    @property
+    def builtin(self) -> bool:
+        return not Path(self.source).is_dir()
+
+    def load(self):
+        """The ``SceneData`` this spec describes."""
+        from .data import load_scene
+
+        if self.builtin:
+            return load_scene(self.source, hidden=self.hidden, level=self.level, width=self.width,
+                              height=self.height, n_train=self.n_train, n_test=self.n_test, seed=self.seed)
+        return load_scene(self.source, downscale=self.downscale)
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """What a run folder's ``config.json`` holds: the scene, the training, and SecureGS (or None)."""
+
+    scene: SceneSpec = dataclasses.field(default_factory=SceneSpec)
+    train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
+    secure: SecureConfig | None = None
+
+
+# ---------------------------------------------------------------------------------------------
+# To and from plain dicts (JSON), by field name
+# ---------------------------------------------------------------------------------------------
+
+
+def to_dict(config) -> dict:
+    """A config dataclass as nested plain dicts (JSON-able; tuples become lists)."""
+    out = {}
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            value = to_dict(value)
+        elif isinstance(value, tuple):
+            value = list(value)
+        elif isinstance(value, float) and math.isinf(value):
+            value = str(value)  # "inf": JSON has no infinity
+        out[f.name] = value
+    return out
+
+
+def from_dict(cls, data: dict, where: str = ""):
+    """Build config dataclass ``cls`` from ``to_dict`` output; unknown fields are refused by name.
+
+    Fields missing from ``data`` take their defaults (a config written before a field existed).
+    """
+    if not isinstance(data, dict):
+        raise ValueError(f"{where or cls.__name__}: expected a mapping of options, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ValueError(f"unknown option {_path(where, unknown[0])!r} (known: {', '.join(sorted(known))})")
+    kwargs = {}
+    for name, value in data.items():
+        kwargs[name] = _coerce(hints[name], value, _path(where, name))
+    return cls(**kwargs)
+
+
+def _coerce(hint, value, where: str):
+    """``value`` (from JSON or a command line) as the type ``hint`` names."""
+    options = [a for a in typing.get_args(hint) if a is not type(None)] if typing.get_origin(hint) in (
+        typing.Union, getattr(__import__("types"), "UnionType", None)) else [hint]
+    if value is None or (isinstance(value, str) and value.lower() == "none"):
+        if len(options) < len(typing.get_args(hint)) or hint is type(None):
+            return None
+        raise ValueError(f"{where} cannot be empty")
+    target = options[0]
+    if dataclasses.is_dataclass(target):
+        return value if isinstance(value, target) else from_dict(target, value, where)
+    try:
+        if target is bool:
+            if isinstance(value, str):
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError
+                return value.lower() in ("true", "1")
+            return bool(value)
+        if target is tuple or typing.get_origin(target) is tuple:
+            items = value.split(",") if isinstance(value, str) else value
+            return tuple(float(v) for v in items)
+        if target is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            return int(value)
+        if target is float:
+            return float(value)
+        if target is str:
+            return str(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: {value!r} is not a valid {getattr(target, '__name__', target)}") from None
+    return value
+
+
+def _path(where: str, name: str) -> str:
+    return f"{where}.{name}" if where else name
+
+
+def field_paths(config) -> dict[str, type]:
+    """Dotted path -> type of every leaf field of a config dataclass (nested sections expanded;
+    an optional section that is None has no leaves)."""
+    out = {}
+    hints = typing.get_type_hints(type(config))
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update({f"{f.name}.{k}": t for k, t in field_paths(value).items()})
+        else:
+            out[f.name] = hints[f.name]
+    return out
+
+
+def resolve_field(config, name: str) -> str:
+    """The dotted path of field ``name`` in ``config``: a full path, or a leaf name that is unique in
+    the tree (``r_down`` for ``strategy.r_down``)."""
+    paths = field_paths(config)
+    if name in paths:
+        return name
+    matches = [p for p in paths if p.rsplit(".", 1)[-1] == name]
+    if len(matches) == 1:
+        return matches[0]
+    if matches:
+        raise ValueError(f"option {name!r} is ambiguous: {', '.join(matches)}")
+    raise ValueError(f"unknown option {name!r}; known: {', '.join(sorted(paths))}")
+
+
+def apply_overrides(config, overrides: dict):
+    """A copy of ``config`` with ``{field name or dotted path: value}`` set; values may be strings
+    (from a command line or a variant) and are converted to the field's type. Checks run as for a
+    freshly built config (a bad value raises ValueError naming the field)."""
+    for name, value in overrides.items():
+        config = _set(config, resolve_field(config, name).split("."), value, "")
+    return config
+
+
+def _set(config, parts: list[str], value, where: str):
+    head, rest = parts[0], parts[1:]
+    path = _path(where, head)
+    if rest:
+        return dataclasses.replace(config, **{head: _set(getattr(config, head), rest, value, path)})
+    hint = typing.get_type_hints(type(config))[head]
+    return dataclasses.replace(config, **{head: _coerce(hint, value, path)})
+
+
+def first_difference(a, b, where: str = "") -> str | None:
+    """The dotted path of the first field where two configs of the same type differ, or None."""
+    if type(a) is not type(b):
+        return where or "config"
+    if not dataclasses.is_dataclass(a):
+        return None if a == b else where
+    for f in dataclasses.fields(a):
+        diff = first_difference(getattr(a, f.name), getattr(b, f.name), _path(where, f.name))
+        if diff is not None:
+            return diff
+    return None

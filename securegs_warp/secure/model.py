@@ -1,0 +1,58 @@
+"""``SecureModel``: a Scaffold-GS model plus the key's private heads, which render the hidden payload
+from the same public anchors and read the hidden bits from their features."""
+from __future__ import annotations
+
+import torch
+
+from ..model import AnchorModel, ScaffoldHeads
+from ..model.neural_gaussians import AnchorViewInputs
+from ..rasterizer import RasterOptions
+from ..render import render_view
+from ..scaffold_model import ScaffoldModel
+from .heads import PrivateHeads
+
+
+class SecureModel(ScaffoldModel):
+    """``private``: the key's heads (``PrivateHeads``), or None for a release opened without the key
+    (then it renders only what any Scaffold-GS viewer renders)."""
+
+    def __init__(self, anchors: AnchorModel, heads: ScaffoldHeads, private: PrivateHeads | None):
+        super().__init__(anchors, heads)
+        self.private = private
+
+    @property
+    def renders_hidden(self) -> bool:
+        """Whether the key holds a hidden decoder (an object, scene or image payload)."""
+        return self.private is not None and self.private.decoder is not None
+
+    def _key(self) -> PrivateHeads:
+        if self.private is None:
+            raise ValueError("this release was opened without its key: nothing hidden can be read")
+        return self.private
+
+    def render_hidden(self, camera, options: RasterOptions | None = None, *, background: torch.Tensor | None = None,
+                      camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0) -> dict:
+        """The hidden branch's render of a view (as ``ScaffoldModel.render``); needs the key.
+
+        feature_grad, scaling_grad: the share of this render's gradient that reaches the public
+        anchor features and scalings (training only; see ``generate_neural_gaussians``).
+        """
+        private = self._key()
+        if private.decoder is None:
+            raise ValueError("this payload hides no image: there is no hidden view to render")
+        source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
+        return render_view(self.anchors, private.decoder, camera, background, options, camera_index=camera_index,
+                           offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad)
+
+    def _explicit_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
+        """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
+        return self.anchors.hidden_offsets[inputs.anchor_index] * inputs.scaling[:, None, :3]
+
+    @torch.no_grad()
+    def decode_bits(self, feat: torch.Tensor | None = None) -> torch.Tensor:
+        """The hidden message [L] (0/1 int64) read from anchor features [N, d] (default: this
+        model's own); needs a key with a bit head."""
+        private = self._key()
+        if private.bit_mlp is None:
+            raise ValueError("this key hides no bits")
+        return private.decode_bits(self.anchors.feat if feat is None else feat)

@@ -1,0 +1,83 @@
+"""The config tree: one name per option, round trips through JSON, overrides by name, and resuming
+with other options refused with the field named."""
+import json
+import math
+
+import pytest
+
+from securegs_warp.cli import main
+from securegs_warp.config import (
+    HeadsConfig,
+    RunConfig,
+    SceneSpec,
+    SecureConfig,
+    TrainConfig,
+    apply_overrides,
+    field_paths,
+    first_difference,
+    from_dict,
+    resolve_field,
+    to_dict,
+)
+from securegs_warp.rasterizer import RasterOptions
+from securegs_warp.strategies import RegionAwareStrategy
+
+TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
+
+
+def test_round_trip_through_json():
+    config = RunConfig(
+        scene=SceneSpec(width=40, hidden="mug"),
+        train=TrainConfig(iterations=7, heads=HeadsConfig(feature_bank=True), raster=RasterOptions(tile_size=8)),
+        secure=SecureConfig(payload="bits:8", hidden_weight=2.0,
+                            strategy=RegionAwareStrategy(hidden_tau_scale=float("inf"))))
+    back = from_dict(RunConfig, json.loads(json.dumps(to_dict(config))))
+    assert back == config and first_difference(back, config) is None
+    assert math.isinf(back.secure.strategy.hidden_tau_scale)
+    assert from_dict(RunConfig, to_dict(RunConfig())).secure is None
+
+
+def test_every_leaf_field_has_one_name():
+    paths = field_paths(RunConfig(secure=SecureConfig()))
+    assert "train.raster.tile_size" in paths and "secure.strategy.r_down" in paths
+    leaves = [p.rsplit(".", 1)[-1] for p in paths]
+    # names that repeat are ambiguous as bare names and must be given as paths (seed: scene and training)
+    assert sorted({n for n in leaves if leaves.count(n) > 1}) == ["seed"]
+    assert resolve_field(RunConfig(secure=SecureConfig()), "r_down") == "secure.strategy.r_down"
+    with pytest.raises(ValueError, match="ambiguous"):
+        resolve_field(RunConfig(secure=SecureConfig()), "seed")
+
+
+def test_overrides_convert_and_check_values():
+    config = apply_overrides(RunConfig(secure=SecureConfig()),
+                             {"iterations": "12", "tile_size": "8", "hidden_weight": "none", "hdger": "false",
+                              "train.offset_lr": "0.1,0.01"})
+    assert config.train.iterations == 12 and config.train.raster.tile_size == 8
+    assert config.secure.hidden_weight is None and config.secure.hdger is False
+    assert config.train.offset_lr == (0.1, 0.01)
+    for overrides, message in (({"iterations": "0"}, "iterations must be >= 1"),
+                               ({"iterations": "2.5"}, "not a valid int"),
+                               ({"tile_size": "12"}, "tile_size must be 8, 16 or 32"),
+                               ({"hdger": "maybe"}, "not a valid bool"),
+                               ({"nonsense": 1}, "unknown option 'nonsense'")):
+        with pytest.raises(ValueError, match=message):
+            apply_overrides(RunConfig(secure=SecureConfig()), overrides)
+
+
+def test_unknown_fields_in_a_file_are_named():
+    data = to_dict(RunConfig())
+    data["train"]["heads"]["feature_bankk"] = True
+    with pytest.raises(ValueError, match="train.heads.feature_bankk"):
+        from_dict(RunConfig, data)
+
+
+def test_resume_with_other_options_is_refused_naming_the_field(tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["hide", "--out", str(out), "--iterations", "3", "--quiet", "--payload", "bits:8", *TINY]
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main(args + ["--resume", "--mode", "global"]) == 2
+    assert "secure.strategy.mode" in capsys.readouterr().err
+    assert main(args + ["--resume", "--iterations", "4"]) == 2
+    assert "train.iterations" in capsys.readouterr().err
+    assert main(args + ["--resume"]) == 0  # the same options resume (here: already finished)
