@@ -53,8 +53,9 @@ class RasterOptions:
     color_storage: str = "float32"
     # CUDA launch shape only (results do not depend on it): threads per block of the forward and
     # backward blending kernels; a block owns that many pixels of a tile and shares each batch of
-    # Gaussians between them. On an H100 (2026-11-22) backward blocks of 256 beat 32 (9.6 vs
-    # 13.7 ms forward+backward, 1M Gaussians, 1080p): scripts/bench_rasterizer.py --variant.
+    # Gaussians between them. 256 because backward blocks of 256 measured faster than blocks of 32
+    # (docs/results.md, "Rasterizer speed against gsplat"; scripts/bench_rasterizer.py --variant
+    # b32:backward_block=32 compares them).
     forward_block: int = 256
     backward_block: int = 256
 
@@ -81,9 +82,56 @@ class RasterOptions:
             if b < 32 or b & (b - 1) or b > 1024:
                 raise ValueError(f"{name} must be a power of two in [32, 1024], got {b}")
 
+    @classmethod
+    def for_device(cls, device: torch.device | str, **fields) -> RasterOptions:
+        """Options for rendering on ``device``: the given ``fields``, and the tile size that suits it
+        unless ``fields`` names one.
+
+        The tile is 8 on the CPU, where each pixel's thread walks its tile's list of Gaussians and
+        smaller tiles give shorter lists (faster there), and 16 on CUDA (gsplat's default). This is
+        the one place the rule is written. Raises ValueError as ``RasterOptions`` does, and for an
+        unknown field (``UnknownOptionError``, naming it and listing the valid ones).
+
+        >>> RasterOptions.for_device("cpu").tile_size, RasterOptions.for_device("cuda").tile_size
+        (8, 16)
+        """
+        check_option_names(fields)
+        fields.setdefault("tile_size", 8 if torch.device(device).type == "cpu" else 16)
+        return cls(**fields)
+
     def block(self, threads: int) -> int:
         """Block size for a blending kernel: at most one tile, a divisor of its pixel count."""
         return min(threads, self.tile_size * self.tile_size)
+
+
+class UnknownOptionError(ValueError, TypeError):
+    """A keyword that is not a ``RasterOptions`` field. A ValueError like every other bad option;
+    also a TypeError, which is what an unexpected keyword argument raises in Python."""
+
+
+def check_option_names(names) -> None:
+    """Raise ``UnknownOptionError`` naming every one of ``names`` that is not a ``RasterOptions``
+    field, and listing the fields."""
+    valid = [f.name for f in dataclasses.fields(RasterOptions)]
+    unknown = [name for name in names if name not in valid]
+    if unknown:
+        raise UnknownOptionError(f"unknown rasterize option(s) {', '.join(map(repr, unknown))}; "
+                                 f"valid RasterOptions fields: {', '.join(valid)}")
+
+
+def resolve_options(options: RasterOptions | None = None, **overrides) -> RasterOptions:
+    """``options`` (default ``RasterOptions()``) with ``overrides`` replacing its fields.
+
+    Raises:
+        UnknownOptionError (a ValueError): an override that is not a field, named with the valid ones.
+        ValueError: a field value ``RasterOptions`` refuses.
+    """
+    if options is not None and not isinstance(options, RasterOptions):
+        raise ValueError(f"options must be a RasterOptions, got {type(options).__name__}")
+    check_option_names(overrides)
+    if options is None:
+        return RasterOptions(**overrides)
+    return dataclasses.replace(options, **overrides) if overrides else options
 
 
 def rasterize(
@@ -97,9 +145,14 @@ def rasterize(
     width: int,
     height: int,
     background: torch.Tensor | None = None,
-    **options,
+    options: RasterOptions | None = None,
+    **overrides,
 ):
     """Render N 3D Gaussians from one pinhole camera, differentiably.
+
+    ``rasterize(..., options=RasterOptions(tile_size=8))`` and ``rasterize(..., tile_size=8)`` are the
+    same render; given both, the keywords replace those fields of ``options``
+    (``dataclasses.replace(options, **overrides)``).
 
     Args:
         means: [N, 3] centres in world space.
@@ -111,10 +164,12 @@ def rasterize(
         K: [3, 3] pinhole intrinsics (fx, fy, cx, cy used).
         width, height: image size in pixels.
         background: [C] colour behind the Gaussians, or None for zeros.
-        **options: fields of ``RasterOptions`` (near_plane, far_plane, eps2d, radius_clip,
+        options: a ``RasterOptions``, or None for its defaults (gsplat 1.5's; see
+            ``RasterOptions.for_device`` for the tile size that suits a device).
+        **overrides: fields of ``RasterOptions`` (near_plane, far_plane, eps2d, radius_clip,
             alpha_min, alpha_max, transmittance_min, tile_size, antialiased, radius_rule,
             render_depth=None | "accumulated" | "expected", fast_math, color_storage="float32" |
-            "float16").
+            "float16", forward_block, backward_block), replacing those of ``options``.
 
     Returns:
         image [H, W, C], alpha [H, W, 1], info: dict with
@@ -125,9 +180,10 @@ def rasterize(
 
     Raises:
         ValueError: a tensor with the wrong shape, a non-finite value (naming the tensor), a bad
-            option, or a non-positive image size.
+            option value, an unknown option keyword (``UnknownOptionError``, which names it and
+            lists the valid fields; also a TypeError), or a non-positive image size.
     """
-    opts = RasterOptions(**options)
+    opts = resolve_options(options, **overrides)
     named = _validated(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
     means, quats, scales, opacities, colors, viewmat, K, background = named.values()
     # The table the blending kernels read: a float16 copy made once per render, or colors itself.

@@ -1,13 +1,11 @@
-"""scripts/accuracy_vs_time.py's model and training sections on a tiny scene: rows carry the columns
-their plot and table need, and the training section's checkpoints count iterations in order."""
+"""The model and training sections of scripts/accuracy_vs_time.py (securegs_warp.benchmark) on a tiny
+scene: rows carry the columns their plot and table need, and the training section's checkpoints
+count iterations in order."""
 import argparse
-import sys
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
-import accuracy_vs_time as avt  # noqa: E402
+from securegs_warp import benchmark as avt
 
 
 @pytest.fixture(scope="module")

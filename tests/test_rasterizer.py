@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-import reference
-from raster_cases import Scene, assert_matches_reference, intrinsics, random_scene, render_both
-from securegs_warp import rasterize
+from securegs_warp import RasterOptions, UnknownOptionError, rasterize, reference
+from securegs_warp.raster_cases import (
+    aniso_scales, assert_matches_reference, hard_scene, intrinsics, layered_scene, random_scene, render_both,
+)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -88,28 +89,6 @@ def test_means2d_grad_for_densification():
 # Hard cases: each must be finite and match the reference
 
 
-def _scene(means, quats=None, scales=None, opacities=None, colors=None, width=32, height=24, viewmat=None,
-           K=None, **kwargs):
-    n = means.shape[0]
-    g = torch.Generator().manual_seed(n)
-    return Scene(
-        means=means.float(),
-        quats=torch.randn(n, 4, generator=g) if quats is None else quats.float(),
-        scales=_aniso(n, 0.1) if scales is None else scales.float(),
-        opacities=torch.full((n,), 0.7) if opacities is None else opacities.float(),
-        colors=torch.rand(n, 3, generator=g) if colors is None else colors.float(),
-        viewmat=torch.eye(4) if viewmat is None else viewmat.float(),
-        K=intrinsics(30.0, 30.0, width / 2, height / 2) if K is None else K,
-        width=width, height=height, background=torch.tensor([0.2, 0.3, 0.4]), kwargs=kwargs,
-    )
-
-
-def _aniso(n, size):
-    """[n, 3] anisotropic scales around ``size``: with isotropic ones rotations would not matter
-    and their gradients would be exactly zero, which a relative error cannot check."""
-    return size * torch.tensor([1.0, 0.6, 1.4]).repeat(n, 1)
-
-
 def _grid_means(n, depth=3.0, spread=1.0, seed=0):
     g = torch.Generator().manual_seed(seed)
     return (torch.rand(n, 3, generator=g) - 0.5) * 2 * spread + torch.tensor([0.0, 0.0, depth])
@@ -119,14 +98,14 @@ def test_scales_from_1e_minus7_to_1e3():
     n = 40
     scales = torch.logspace(-7, 3, n)[:, None] * torch.tensor([1.0, 0.7, 1.3])
     scales = scales[torch.randperm(n, generator=torch.Generator().manual_seed(0))]
-    assert_matches_reference(_scene(_grid_means(n, depth=4.0), scales=scales))
+    assert_matches_reference(hard_scene(_grid_means(n, depth=4.0), scales=scales))
 
 
 def test_anisotropy_1e6():
     n = 30
     g = torch.Generator().manual_seed(1)
     scales = torch.tensor([0.3, 3e-7, 0.3]).repeat(n, 1)[:, torch.randperm(3, generator=g)]
-    assert_matches_reference(_scene(_grid_means(n), scales=scales))
+    assert_matches_reference(hard_scene(_grid_means(n), scales=scales))
 
 
 def test_unnormalised_and_near_zero_quaternions():
@@ -137,7 +116,8 @@ def test_unnormalised_and_near_zero_quaternions():
     quats[6:12] *= 1e-3
     quats[12:18] *= 1e-20
     quats[18:] = 0.0
-    ours, _ = assert_matches_reference(_scene(_grid_means(n), quats=quats, scales=torch.rand(n, 3, generator=g) * 0.3))
+    scales = torch.rand(n, 3, generator=g) * 0.3
+    ours, _ = assert_matches_reference(hard_scene(_grid_means(n), quats=quats, scales=scales))
     assert torch.isfinite(ours["grad_quats"]).all()
 
 
@@ -153,7 +133,7 @@ def test_gaussians_behind_camera_and_at_near_plane():
     ])
     scales = torch.tensor([0.001, 0.0005, 0.002]).repeat(9, 1)
     scales[7:] = torch.tensor([0.2, 0.1, 0.3])  # anisotropic, so that rotations matter
-    ours, _ = assert_matches_reference(_scene(means, scales=scales, near_plane=near))
+    ours, _ = assert_matches_reference(hard_scene(means, scales=scales, near_plane=near))
     _, _, info = rasterize(means, torch.randn(9, 4), scales, torch.full((9,), 0.7), torch.rand(9, 3), torch.eye(4),
                            intrinsics(30.0, 30.0, 16, 12), 32, 24)
     assert (info["radii"][[0, 1, 2, 6]] == 0).all()
@@ -166,38 +146,33 @@ def test_far_outside_frustum_and_straddling_border():
         [8.0, 0.0, 2.0], [0.0, -5.0, 1.5],  # large, just outside: reach into the image
         [1.05, 0.0, 2.0], [-1.07, 0.3, 2.0], [0.2, 0.79, 2.0], [-0.4, -0.8, 2.0],  # on the borders
     ])
-    scales = torch.cat([_aniso(3, 30.0), _aniso(2, 6.0), _aniso(4, 0.2)])
-    assert_matches_reference(_scene(means, scales=scales))
+    scales = torch.cat([aniso_scales(3, 30.0), aniso_scales(2, 6.0), aniso_scales(4, 0.2)])
+    assert_matches_reference(hard_scene(means, scales=scales))
 
 
 def test_opacities_exactly_zero_and_one():
     n = 30
     opac = torch.tensor([0.0, 1.0, 0.5]).repeat(10)
-    ours, _ = assert_matches_reference(_scene(_grid_means(n), opacities=opac, scales=_aniso(n, 0.3)))
+    ours, _ = assert_matches_reference(hard_scene(_grid_means(n), opacities=opac, scales=aniso_scales(n, 0.3)))
     assert (ours["grad_opacities"][0::3] == 0).all()  # culled
 
 
 @pytest.mark.parametrize("radius_rule", ["opacity_aware", "tight"])
 def test_opacity_exactly_at_alpha_min(radius_rule):
     # The opacity-aware radius takes sqrt(2 ln(o / alpha_min)), 0 at o == alpha_min, where sqrt's
-    # adjoint was 0/0: NaN opacity gradients although the radius is rounded (seen in training).
+    # adjoint is 0/0 unless guarded: the opacity gradients must stay finite (the rounded radius
+    # carries none).
     n = 30
     alpha_min = torch.tensor(1.0 / 255.0, dtype=torch.float32)
     opac = torch.stack([alpha_min, torch.nextafter(alpha_min, torch.tensor(1.0)), torch.tensor(0.6)]).repeat(10)
-    assert_matches_reference(_scene(_grid_means(n), opacities=opac, scales=_aniso(n, 0.3),
-                                    radius_rule=radius_rule))
+    assert_matches_reference(hard_scene(_grid_means(n), opacities=opac, scales=aniso_scales(n, 0.3),
+                                        radius_rule=radius_rule))
 
 
 def test_hundreds_of_layers_on_one_pixel():
     # 600 layers along the optical axis: a translucent stack crossing several 256-Gaussian batches,
     # then opaque layers that end it before the transmittance floor.
-    n_thin, n_opaque = 500, 100
-    z = torch.cat([torch.linspace(2.0, 3.0, n_thin), torch.linspace(3.01, 4.0, n_opaque)])
-    means = torch.stack([torch.zeros_like(z), torch.zeros_like(z), z], dim=1)
-    means[:, :2] += torch.randn(n_thin + n_opaque, 2, generator=torch.Generator().manual_seed(3)) * 0.01
-    opac = torch.cat([torch.full((n_thin,), 0.015), torch.full((n_opaque,), 0.6)])
-    scales = _aniso(n_thin + n_opaque, 0.05)
-    ours, ref = assert_matches_reference(_scene(means, opacities=opac, scales=scales, width=16, height=16))
+    ours, ref = assert_matches_reference(layered_scene(500, 100, width=16, height=16, jitter=0.01))
     assert float(ref["alpha"].max()) > 0.999  # the stack really does saturate
 
 
@@ -205,14 +180,14 @@ def test_coordinates_of_magnitude_1e4():
     offset = torch.tensor([1.0e4, -2.0e4, 1.5e4])
     viewmat = torch.eye(4)
     viewmat[:3, 3] = -offset
-    assert_matches_reference(_scene(_grid_means(40) + offset, viewmat=viewmat))
+    assert_matches_reference(hard_scene(_grid_means(40) + offset, viewmat=viewmat))
 
 
 def test_equal_depths():
     n = 30
     means = _grid_means(n)
     means[:, 2] = 3.0
-    assert_matches_reference(_scene(means, scales=_aniso(n, 0.3)))
+    assert_matches_reference(hard_scene(means, scales=aniso_scales(n, 0.3)))
 
 
 def test_fx_neq_fy_and_off_centre_principal_point():
@@ -281,3 +256,47 @@ def test_random_scenes_float64_consistency_with_itself():
     b, _ = render_both(s)
     assert torch.equal(a["image"], b["image"])
     assert np.isfinite(a["image"].numpy()).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# Options as a RasterOptions object, as keywords, or both
+
+
+def _render(s, options=None, **overrides):
+    return rasterize(s.means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height,
+                     s.background, options, **overrides)
+
+
+def test_options_object_and_keywords_give_the_same_render():
+    s = random_scene(18, n=40)
+    by_object = _render(s, RasterOptions(tile_size=8, radius_rule="tight"))
+    by_keywords = _render(s, tile_size=8, radius_rule="tight")
+    mixed = _render(s, RasterOptions(tile_size=32, radius_rule="tight"), tile_size=8)  # keywords win
+    default = _render(s, tile_size=16, radius_rule="tight")
+    for other in (by_keywords, mixed):
+        assert torch.equal(by_object[0], other[0]) and torch.equal(by_object[1], other[1])
+        assert by_object[2]["n_intersections"] == other[2]["n_intersections"]
+    assert mixed[2]["tile_size"] == 8
+    assert default[2]["tile_size"] == 16 and default[2]["n_intersections"] != by_object[2]["n_intersections"]
+
+
+def test_unknown_option_keyword_names_it_and_lists_the_fields():
+    s = random_scene(19, n=5)
+    for call in (lambda: _render(s, tile_sise=8), lambda: _render(s, RasterOptions(), tile_sise=8)):
+        with pytest.raises(ValueError, match=r"'tile_sise'.*tile_size.*color_storage") as raised:
+            call()
+        assert isinstance(raised.value, UnknownOptionError) and isinstance(raised.value, TypeError)
+    with pytest.raises(ValueError, match="RasterOptions"):
+        _render(s, {"tile_size": 8})
+    with pytest.raises(ValueError, match="tile_size"):
+        _render(s, RasterOptions(), tile_size=12)  # overrides are validated like the fields
+
+
+def test_for_device_picks_the_tile_size():
+    assert RasterOptions.for_device("cpu").tile_size == 8
+    assert RasterOptions.for_device(torch.device("cpu"), fast_math=True) == RasterOptions(tile_size=8, fast_math=True)
+    assert RasterOptions.for_device("cuda").tile_size == 16
+    assert RasterOptions.for_device("cuda:0", tile_size=32).tile_size == 32
+    assert RasterOptions.for_device("cpu", tile_size=16).tile_size == 16
+    with pytest.raises(ValueError, match="tile_sise"):
+        RasterOptions.for_device("cpu", tile_sise=8)

@@ -5,22 +5,14 @@ block reductions are trivial there. With ``wp.config.enable_cpu_blocks`` it runs
 many threads; this test renders with several block shapes in a fresh process (the flag is global)
 and checks every result against the float64 reference.
 """
-from raster_cases import DIFF_INPUTS, run_with_cpu_blocks
+from securegs_warp.raster_cases import DIFF_INPUTS, run_with_cpu_blocks
 
 SCRIPT = """
-    from raster_cases import error_row, random_scene, render_both
-    from test_rasterizer import _scene, _aniso
-
-    def layers():
-        z = torch.cat([torch.linspace(2.0, 3.0, 300), torch.linspace(3.01, 4.0, 40)])
-        means = torch.stack([torch.zeros_like(z), torch.zeros_like(z), z], dim=1)
-        means[:, :2] += torch.randn(340, 2, generator=torch.Generator().manual_seed(3)) * 0.05
-        opac = torch.cat([torch.full((300,), 0.015), torch.full((40,), 0.6)])
-        return _scene(means, opacities=opac, scales=_aniso(340, 0.05), width=20, height=18)
+    from securegs_warp.raster_cases import error_row, layered_scene, random_scene, render_both
 
     out = []
     for blocks in [(256, 32), (64, 64), (32, 256)]:
-        for name, scene in [("random", random_scene(30, n=70, width=37, height=29)), ("layers", layers())]:
+        for name, scene in [("random", random_scene(30, n=70, width=37, height=29)), ("layers", layered_scene())]:
             scene.kwargs.update(forward_block=blocks[0], backward_block=blocks[1])
             ours, ref = render_both(scene)
             out.append({"blocks": blocks, "scene": name, **error_row(ours, ref)})

@@ -6,10 +6,10 @@ error, and with its effect neutral against the general kernels.
 import pytest
 import torch
 
-from raster_cases import (
-    DIFF_INPUTS, GRAD_TOL, IMAGE_TOL, assert_matches_reference, random_scene, relative_error, render_both, run_with_cpu_blocks,
+from securegs_warp.raster_cases import (
+    DIFF_INPUTS, GRAD_TOL, IMAGE_TOL, assert_matches_reference, float16_rounding, random_scene, relative_error,
+    render_both, render_with_grads, run_with_cpu_blocks,
 )
-from securegs_warp import rasterize
 from securegs_warp.kernels.blend import batch_size, blend_kernels
 from securegs_warp.kernels.projection import projection_kernel
 
@@ -20,11 +20,6 @@ def reference_errors(scene):
     errors = {key: float((ours[key] - ref[key]).abs().max()) for key in ("image", "alpha")}
     errors.update({name: relative_error(ours["grad_" + name], ref["grad_" + name]) for name in DIFF_INPUTS})
     return errors
-
-
-def float16_rounding(colors):
-    """Largest change of a colour when stored as float16 (≤ 2⁻¹¹·|c|; ≤ 2⁻¹² for |c| < 1)."""
-    return float((colors.to(torch.float16).float() - colors).abs().max())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -50,17 +45,6 @@ def test_float16_colors_match_reference(seed, channels, lo, hi):
     for name in DIFF_INPUTS:
         tol = GRAD_TOL if name in ("colors", "background") else FLOAT16_GRAD_TOL
         assert errors[name] <= tol, (name, errors)
-
-
-def render_with_grads(scene, **options):
-    """Image, alpha and every input gradient of one render (fixed cotangents)."""
-    inputs = {name: getattr(scene, name).detach().clone().requires_grad_(True) for name in DIFF_INPUTS}
-    image, alpha, _ = rasterize(**inputs, viewmat=scene.viewmat, K=scene.K, width=scene.width,
-                                height=scene.height, **options)
-    g = torch.Generator().manual_seed(5)
-    ((image * torch.randn(image.shape, generator=g)).sum() + (alpha * torch.randn(alpha.shape, generator=g)).sum()
-     ).backward()
-    return [image, alpha] + [inputs[name].grad for name in DIFF_INPUTS]
 
 
 def test_float16_exactly_representable_colors_are_bit_identical():
@@ -89,8 +73,7 @@ def test_float16_batches_twice_the_wide_gaussians():
 # The cooperative (CUDA) code path gathers the float16 colours into shared memory; run it on the
 # CPU with real multi-thread blocks in a fresh process (enable_cpu_blocks is global).
 COOPERATIVE = """
-    from raster_cases import error_row, random_scene, render_both
-    from test_rasterizer_options import float16_rounding, render_with_grads
+    from securegs_warp.raster_cases import error_row, float16_rounding, random_scene, render_both, render_with_grads
 
     scene = random_scene(4, n=70, channels=3, width=37, height=29, color_storage="float16")
     ours, ref = render_both(scene)

@@ -3,8 +3,8 @@ import math
 
 import torch
 
-import reference
-from raster_cases import random_scene
+from securegs_warp import reference
+from securegs_warp.raster_cases import random_scene
 
 
 def test_reference_gradients_match_finite_differences():

@@ -11,15 +11,29 @@
     rot_0 .. rot_3                     quaternion, w first
 
 The MLPs are ``opacity_mlp.pt``, ``cov_mlp.pt``, ``color_mlp.pt`` and, when used,
-``feature_bank_mlp.pt`` and ``embedding_appearance.pt``. Scaffold-GS writes them with
-``torch.jit.trace(...).save()``; loading those with ``torch.jit.load`` would execute code from the
-file. We write plain state dicts (``torch.save(state_dict)``) and read them only with
-``torch.load(weights_only=True)``; TorchScript archives are refused with the one-line conversion.
+``feature_bank_mlp.pt`` and ``embedding_appearance.pt``, written as Scaffold-GS's
+``GaussianModel.save_mlp_checkpoints(mode='split')`` writes them (scene/gaussian_model.py of
+city-super/Scaffold-GS): each is ``torch.jit.trace`` of the module in eval mode with an example
+input of Scaffold-GS's shape ([1, d+3(+1)] opacity and covariance, [1, d+3(+1)+A] colour, [1, 4]
+feature bank, a [1] long index for the embedding), saved with ``torch.jit.save``. Scaffold-GS's
+``load_mlp_checkpoints`` opens them with ``torch.jit.load``, so a folder written here renders in
+Scaffold-GS as it is. Tracing happens on a CPU copy, so the caller's module keeps its device,
+training mode and parameters.
+
+Reading never executes anything from a file: a TorchScript archive (ours or Scaffold-GS's) is read
+by :mod:`.torchscript`, which interprets its ``data.pkl`` symbolically and takes the tensors from
+the raw storage records, never calling ``torch.jit.load`` or unpickling it. Plain state-dict files
+(``torch.save(state_dict)``, what this package wrote before) and Scaffold-GS's ``mode='unite'``
+file ``checkpoints.pth`` (a dict of the MLPs' state dicts) are read with
+``torch.load(weights_only=True)``, which only rebuilds tensors and containers.
 """
 
 from __future__ import annotations
 
+import copy
+import io
 import os
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -30,6 +44,7 @@ from ..model.anchors import AnchorModel
 from ..model.heads import ScaffoldHeads
 from .atomic import atomic_write
 from .gs_ply import PlyFormatError, read_vertex_ply, vertex_columns, write_vertex_ply
+from .torchscript import TorchScriptError, archive_kind, read_torchscript_state_dict
 
 POINT_CLOUD_FILE = "point_cloud.ply"
 MLP_FILES = {
@@ -40,6 +55,16 @@ MLP_FILES = {
     "embedding_appearance": "embedding_appearance.pt",
 }
 """ScaffoldHeads attribute -> file name beside point_cloud.ply."""
+UNITE_FILE = "checkpoints.pth"
+"""Scaffold-GS's ``save_mlp_checkpoints(mode='unite')`` file: all MLP state dicts in one dict."""
+UNITE_KEYS = {
+    "opacity_mlp": "opacity_mlp",
+    "cov_mlp": "cov_mlp",
+    "color_mlp": "color_mlp",
+    "feature_bank_mlp": "feature_bank_mlp",
+    "appearance": "embedding_appearance",
+}
+"""Key in ``checkpoints.pth`` -> ScaffoldHeads attribute."""
 _REQUIRED_MLPS = ("opacity_mlp", "cov_mlp", "color_mlp")
 # What torch.load(weights_only=True) raises for a file holding anything but tensors.
 _UNPICKLING_ERRORS = (torch.serialization.pickle.UnpicklingError,)
@@ -74,6 +99,10 @@ def anchor_ply_properties(n_offsets: int, feat_dim: int) -> list[str]:
 def save_scaffold(directory: str | os.PathLike, model: AnchorModel, heads: ScaffoldHeads) -> None:
     """Write ``point_cloud.ply`` and the heads' MLP files into ``directory`` (created if needed).
 
+    The MLPs are TorchScript archives traced as Scaffold-GS's ``save_mlp_checkpoints`` traces them
+    (see the module docstring), so Scaffold-GS's ``load_mlp_checkpoints`` opens them. ``heads`` is
+    not modified: each module is traced from a CPU copy in eval mode.
+
     Each file is written atomically; the MLPs go first, so an interrupted save never leaves a new
     point cloud next to missing MLPs (it can leave new MLPs beside an older point cloud).
     """
@@ -85,8 +114,8 @@ def save_scaffold(directory: str | os.PathLike, model: AnchorModel, heads: Scaff
             # A stale optional file from an earlier save would change what load_scaffold builds.
             (directory / filename).unlink(missing_ok=True)
             continue
-        state = {key: value.detach().cpu() for key, value in module.state_dict().items()}
-        atomic_write(directory / filename, lambda f, state=state: torch.save(state, f))
+        archive = traced_mlp_bytes(module, _example_input(heads, attribute))
+        atomic_write(directory / filename, lambda f, archive=archive: f.write(archive))
 
     n = model.num_anchors
     with torch.no_grad():
@@ -106,6 +135,36 @@ def save_scaffold(directory: str | os.PathLike, model: AnchorModel, heads: Scaff
                      values.detach().cpu().numpy())
 
 
+def _example_input(heads: ScaffoldHeads, attribute: str) -> torch.Tensor:
+    """The example input of Scaffold-GS's save_mlp_checkpoints for that module (shape and dtype).
+
+    Scaffold-GS uses ``torch.rand``; the values do not change what is traced (no data-dependent
+    branches), and zeros keep saving from drawing on the global random stream.
+    """
+    d, a = heads.feat_dim, heads.appearance_dim
+    widths = {
+        "opacity_mlp": d + 3 + int(heads.add_opacity_dist),
+        "cov_mlp": d + 3 + int(heads.add_cov_dist),
+        "color_mlp": d + 3 + int(heads.add_color_dist) + a,
+        "feature_bank_mlp": 3 + 1,
+    }
+    if attribute == "embedding_appearance":
+        return torch.zeros((1,), dtype=torch.long)
+    return torch.zeros(1, widths[attribute])
+
+
+def traced_mlp_bytes(module: nn.Module, example_input: torch.Tensor) -> bytes:
+    """``torch.jit.save`` bytes of ``torch.jit.trace`` of a CPU copy of ``module`` in eval mode."""
+    copied = copy.deepcopy(module).cpu()
+    copied.eval()
+    buffer = io.BytesIO()
+    with warnings.catch_warnings():
+        # torch.jit is deprecated in recent torch, but it is the format Scaffold-GS reads.
+        warnings.filterwarnings("ignore", message=r"`torch\.jit\.", category=DeprecationWarning)
+        torch.jit.save(torch.jit.trace(copied, example_input), buffer)
+    return buffer.getvalue()
+
+
 # ----------------------------------------------------------------------------------------------
 # Loading
 # ----------------------------------------------------------------------------------------------
@@ -122,6 +181,10 @@ def load_scaffold(
     options (feature bank, appearance embedding and its size, distance inputs) from which MLP files
     exist and their shapes. ``voxel_size`` is not stored by Scaffold-GS; pass it to grow anchors.
 
+    The MLPs are read from the split files (``opacity_mlp.pt`` ...) with :func:`load_weights`;
+    when none of them exists but ``checkpoints.pth`` (Scaffold-GS's ``mode='unite'``) does, from
+    that file.
+
     Raises:
         PlyFormatError: point_cloud.ply lacks a property (named) or has inconsistent counts.
         MlpFileError: an MLP file is unsafe to load, unreadable, or its shapes do not fit.
@@ -131,13 +194,7 @@ def load_scaffold(
     model = _load_anchors(directory / POINT_CLOUD_FILE, voxel_size).to(device)
     d, k = model.feat_dim, model.n_offsets
 
-    weights = {}
-    for attribute, filename in MLP_FILES.items():
-        path = directory / filename
-        if path.exists():
-            weights[attribute] = (path, load_weights(path, device))
-        elif attribute in _REQUIRED_MLPS:
-            raise FileNotFoundError(f"{path}: Scaffold-GS model folder has no {filename}")
+    weights = _load_mlps(directory, device)
 
     appearance_dim = num_cameras = 0
     if "embedding_appearance" in weights:
@@ -156,6 +213,39 @@ def load_scaffold(
     for attribute, (path, state) in weights.items():
         _load_into(getattr(heads, attribute), state, path, d, k)
     return model, heads
+
+
+def _load_mlps(directory: Path, device: torch.device | str) -> dict[str, tuple[str | Path, dict]]:
+    """ScaffoldHeads attribute -> (file, state dict) for the MLP files present."""
+    unite = directory / UNITE_FILE
+    if unite.exists() and not any((directory / MLP_FILES[a]).exists() for a in _REQUIRED_MLPS):
+        return _load_unite(unite, device)
+    weights = {}
+    for attribute, filename in MLP_FILES.items():
+        path = directory / filename
+        if path.exists():
+            weights[attribute] = (path, load_weights(path, device))
+        elif attribute in _REQUIRED_MLPS:
+            raise FileNotFoundError(f"{path}: Scaffold-GS model folder has no {filename}")
+    return weights
+
+
+def _load_unite(path: Path, device: torch.device | str) -> dict[str, tuple[str, dict]]:
+    """The state dicts in a ``checkpoints.pth``, each named ``checkpoints.pth['key']`` in errors."""
+    content = _torch_load_tensors(path, device)
+    if not isinstance(content, dict):
+        raise MlpFileError(path, "expected a dict of state dicts (Scaffold-GS's checkpoints.pth)")
+    unknown = sorted(str(key) for key in content if key not in UNITE_KEYS)
+    if unknown:
+        raise MlpFileError(path, f"unexpected entry {unknown[0]!r}; expected some of {sorted(UNITE_KEYS)}")
+    weights = {}
+    for key, attribute in UNITE_KEYS.items():
+        name = f"{os.fspath(path)}[{key!r}]"
+        if key in content:
+            weights[attribute] = (name, _check_state_dict(name, content[key]))
+        elif attribute in _REQUIRED_MLPS:
+            raise MlpFileError(path, f"has no {key!r} entry")
+    return weights
 
 
 def _load_anchors(path: Path, voxel_size: float | None) -> AnchorModel:
@@ -190,7 +280,7 @@ def _count_indexed(path: Path, names: set[str], prefix: str) -> int:
     return len(indices)
 
 
-def _embedding_state(path: Path, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def _embedding_state(path: str | Path, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """Our embedding file holds ``weight``; Scaffold-GS's wraps nn.Embedding as ``embedding.weight``."""
     for key in ("weight", "embedding.weight"):
         if key in state and state[key].ndim == 2:
@@ -198,7 +288,7 @@ def _embedding_state(path: Path, state: dict[str, torch.Tensor]) -> dict[str, to
     raise MlpFileError(path, f"no 2-D 'weight' or 'embedding.weight' tensor among {sorted(state)}")
 
 
-def _extra_inputs(entry: tuple[Path, dict[str, torch.Tensor]], base: int) -> int:
+def _extra_inputs(entry: tuple[str | Path, dict[str, torch.Tensor]], base: int) -> int:
     """How many inputs the first Linear takes beyond ``base`` (1 when the distance is fed)."""
     path, state = entry
     weight = state.get("0.weight")
@@ -211,7 +301,7 @@ def _extra_inputs(entry: tuple[Path, dict[str, torch.Tensor]], base: int) -> int
     return extra
 
 
-def _load_into(module: nn.Module, state: dict[str, torch.Tensor], path: Path, d: int, k: int) -> None:
+def _load_into(module: nn.Module, state: dict[str, torch.Tensor], path: str | Path, d: int, k: int) -> None:
     expected = module.state_dict()
     missing = sorted(set(expected) - set(state))
     if missing:
@@ -231,21 +321,31 @@ def _load_into(module: nn.Module, state: dict[str, torch.Tensor], path: Path, d:
 def load_weights(path: str | os.PathLike, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
     """The named tensors of a weights file, read without running any code from it.
 
-    Accepts a ``torch.save``-d dict of tensors, read with ``torch.load(weights_only=True)``. A
-    TorchScript archive (how the original Scaffold-GS saves its MLPs) is refused: its tensors can
-    only be reached by unpickling the archive, and no file is ever unpickled here. The error says
-    how to convert it once, where the file is trusted.
+    Accepts a TorchScript archive (``torch.jit.save``, how Scaffold-GS and this package save the
+    MLPs), whose tensors :func:`.torchscript.read_torchscript_state_dict` takes from the archive's
+    records without ``torch.jit.load`` and without unpickling it; and a ``torch.save``-d dict of
+    tensors, read with ``torch.load(weights_only=True)``. Anything else is refused.
+
+    Raises:
+        MlpFileError: naming the file and why it was refused.
     """
     path = Path(path)
-    if _is_torchscript_archive(path):
-        raise MlpFileError(
-            path,
-            "is a TorchScript archive (the original Scaffold-GS saves MLPs with torch.jit); reading it would "
-            "mean unpickling the file, which securegs never does. Convert it once where you trust it: "
-            f"python -c \"import torch; torch.save(torch.jit.load('{path}').state_dict(), '{path}')\"",
-        )
+    kind = archive_kind(path)
+    if kind == "torchscript":
+        try:
+            state = read_torchscript_state_dict(path)
+        except TorchScriptError as e:
+            raise MlpFileError(path, f"TorchScript archive refused: {e}") from e
+        return _check_state_dict(path, {key: value.to(device) for key, value in state.items()})
+    if kind == "zip":
+        raise MlpFileError(path, "is a zip archive but neither a TorchScript archive (torch.jit.save) nor a "
+                                 "torch.save file (no single '<folder>/data.pkl' record)")
+    return _check_state_dict(path, _torch_load_tensors(path, device))
+
+
+def _torch_load_tensors(path: Path, device: torch.device | str):
     try:
-        state = torch.load(path, weights_only=True, map_location=device)
+        return torch.load(path, weights_only=True, map_location=device)
     except _UNPICKLING_ERRORS as e:
         raise MlpFileError(
             path,
@@ -254,17 +354,9 @@ def load_weights(path: str | os.PathLike, device: torch.device | str = "cpu") ->
         ) from e
     except (RuntimeError, EOFError, zipfile.BadZipFile) as e:
         raise MlpFileError(path, f"not a readable torch weights file ({e})") from e
+
+
+def _check_state_dict(path: str | os.PathLike, state) -> dict[str, torch.Tensor]:
     if not isinstance(state, dict) or not all(isinstance(k, str) and torch.is_tensor(v) for k, v in state.items()):
         raise MlpFileError(path, "expected a dict of named tensors (a state_dict)")
-    return state
-
-
-def _is_torchscript_archive(path: Path) -> bool:
-    # torch.jit.save archives carry constants.pkl; torch.save archives never do (the test torch
-    # itself uses to tell them apart).
-    if not zipfile.is_zipfile(path):
-        return False
-    with zipfile.ZipFile(path) as archive:
-        return any(name.endswith("/constants.pkl") for name in archive.namelist())
-
-
+    return dict(state)
