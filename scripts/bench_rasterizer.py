@@ -19,7 +19,6 @@ import torch
 import warp as wp
 
 from securegs_warp import benchmark
-from securegs_warp.benchmark import timed  # noqa: F401  (scripts/bench_effects.py still imports it from here)
 
 
 def main():

@@ -452,11 +452,11 @@ def raster_section(args):
 # The model and training sections: Scaffold-GS trained on the built-in synthetic scene. ``args``:
 # iterations, width, height, train_views, test_views, points, device, rounds.
 
-# One knob at a time away from TrainConfig's defaults (k = 10, feat_dim = 32, no feature bank):
-# label -> TrainConfig overrides. feat_dim is also the hidden width of Scaffold-GS's MLPs.
+# One knob at a time away from HeadsConfig's defaults (k = 10, feat_dim = 32, no feature bank):
+# label -> HeadsConfig overrides. feat_dim is also the hidden width of Scaffold-GS's MLPs.
 MODEL_KNOBS = {"default": {}, "k=5": {"n_offsets": 5}, "k=20": {"n_offsets": 20},
                "feat_dim=16": {"feat_dim": 16}, "feat_dim=64": {"feat_dim": 64},
-               "feat_bank=on": {"use_feat_bank": True}}
+               "feat_bank=on": {"feature_bank": True}}
 
 # Fractions of --iterations at which the training section evaluates.
 TRAINING_FRACTIONS = (0.1, 0.25, 0.5, 1.0)
@@ -474,12 +474,14 @@ def scene_label(args):
     return f"synthetic {args.width}×{args.height}, {args.iterations} it"
 
 
-def make_trainer(scene, args, **overrides):
-    """ScaffoldTrainer with the tile size for the device (``RasterOptions.for_device``)."""
-    from .train import ScaffoldTrainer, TrainConfig
+def make_trainer(scene, args, **heads):
+    """ScaffoldTrainer with the rasterizer options for the device (``RasterOptions.for_device``) and
+    ``heads`` (HeadsConfig fields) set."""
+    from .config import HeadsConfig, TrainConfig
+    from .train import ScaffoldTrainer
 
-    tile_size = RasterOptions.for_device(args.device).tile_size
-    config = TrainConfig(iterations=args.iterations, tile_size=tile_size, **overrides)
+    config = TrainConfig(iterations=args.iterations, heads=HeadsConfig(**heads),
+                         raster=RasterOptions.for_device(args.device))
     return ScaffoldTrainer(scene, config, device=args.device)
 
 
@@ -527,7 +529,7 @@ def held_out_with_float16_features(trainer, rounds):
     """held_out() of the trained model with its anchor features rounded to float16, as a release that
     stores them in half precision would load them (the MLPs still run in float32, so only the
     feature columns of the file halve; the render time should not move)."""
-    feat = trainer.model.feat
+    feat = trainer.model.anchors.feat
     stored = feat.detach().clone()
     feat.copy_(stored.half().float())
     try:

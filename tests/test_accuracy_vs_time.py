@@ -43,9 +43,9 @@ def test_float16_feature_point_renders_rounded_features_and_restores_them(args):
     trainer = avt.make_trainer(scene, args)
     with torch.no_grad():
         torch.manual_seed(0)
-        trainer.model.feat.copy_(torch.randn_like(trainer.model.feat) + 1 / 3)
-    before = trainer.model.feat.detach().clone()
+        trainer.model.anchors.feat.copy_(torch.randn_like(trainer.model.anchors.feat) + 1 / 3)
+    before = trainer.model.anchors.feat.detach().clone()
     full = avt.held_out(trainer, 1)
     half = avt.held_out_with_float16_features(trainer, 1)
-    assert torch.equal(trainer.model.feat.detach(), before)
+    assert torch.equal(trainer.model.anchors.feat.detach(), before)
     assert half["test_psnr_db"] != full["test_psnr_db"]
