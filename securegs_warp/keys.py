@@ -95,6 +95,25 @@ def _derive(passphrase: str, salt: bytes, n: int, r: int, p: int) -> bytes:
     return Scrypt(salt=salt, length=32, n=n, r=r, p=p).derive(secret)
 
 
+def seal(data: bytes, passphrase: str) -> bytes:
+    """``data`` in the sealed envelope (module docstring): scrypt-derived AES-256-GCM, header
+    authenticated. Also seals a sealed run's checkpoints, which hold the private heads."""
+    if not passphrase:
+        raise ValueError("an empty passphrase protects nothing; pass None for a plain key")
+    salt, nonce = os.urandom(16), os.urandom(12)
+    header = {"cipher": "AES-256-GCM", "kdf": "scrypt", "n": SCRYPT_N, "r": SCRYPT_R,
+              "p": SCRYPT_P, "salt": base64.b64encode(salt).decode(),
+              "nonce": base64.b64encode(nonce).decode()}
+    prefix = SEALED_MAGIC + json.dumps(header, sort_keys=True).encode() + b"\n"
+    key = _derive(passphrase, salt, SCRYPT_N, SCRYPT_R, SCRYPT_P)
+    return prefix + AESGCM(key).encrypt(nonce, data, prefix)
+
+
+def is_sealed(blob: bytes) -> bool:
+    """Whether ``blob`` starts like a sealed envelope (of any version)."""
+    return blob.startswith(_SEALED_PREFIX)
+
+
 def save_key(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata: dict,
              fingerprint: str, passphrase: str | None = None) -> None:
     """Write a key file atomically, sealed with ``passphrase`` when one is given.
@@ -105,16 +124,12 @@ def save_key(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata
     """
     data = _plain_bytes(tensors, metadata, fingerprint)
     if passphrase is not None:
-        if passphrase == "":
-            raise ValueError("an empty passphrase protects nothing; pass None for a plain key")
-        salt, nonce = os.urandom(16), os.urandom(12)
-        header = {"cipher": "AES-256-GCM", "kdf": "scrypt", "n": SCRYPT_N, "r": SCRYPT_R,
-                  "p": SCRYPT_P, "salt": base64.b64encode(salt).decode(),
-                  "nonce": base64.b64encode(nonce).decode()}
-        prefix = SEALED_MAGIC + json.dumps(header, sort_keys=True).encode() + b"\n"
-        key = _derive(passphrase, salt, SCRYPT_N, SCRYPT_R, SCRYPT_P)
-        data = prefix + AESGCM(key).encrypt(nonce, data, prefix)
+        data = seal(data, passphrase)
+    write_private(path, data)
 
+
+def write_private(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` atomically to a file only its owner can read (0600 on POSIX) from the first byte."""
     def writer(f):
         if hasattr(os, "fchmod"):  # before any byte is written and before the rename publishes it
             os.fchmod(f.fileno(), 0o600)
@@ -123,14 +138,16 @@ def save_key(path: str | os.PathLike, tensors: dict[str, torch.Tensor], metadata
     atomic_write(path, writer)
 
 
-def _unseal(path: Path, blob: bytes, passphrase: str | None) -> bytes:
+def unseal(path: Path, blob: bytes, passphrase: str | None, what: str = "key") -> bytes:
+    """The plain bytes of a sealed envelope; KeyFileError naming ``path`` on a wrong passphrase, a
+    modified file, an unknown version or a missing passphrase (``what`` names the file's role)."""
     if not blob.startswith(SEALED_MAGIC):
         first_line = blob.split(b"\n", 1)[0][:40].decode("ascii", "replace")
-        raise KeyFileError(f"{path}: sealed key of an unknown version ({first_line!r}); "
+        raise KeyFileError(f"{path}: sealed {what} of an unknown version ({first_line!r}); "
                            "it needs a newer securegs-warp")
     end = blob.find(b"\n", len(SEALED_MAGIC))
     if end < 0:
-        raise KeyFileError(f"{path}: sealed key is truncated or damaged (its header line is incomplete)")
+        raise KeyFileError(f"{path}: sealed {what} is truncated or damaged (its header line is incomplete)")
     prefix, ciphertext = blob[: end + 1], blob[end + 1:]
     try:
         h = json.loads(prefix[len(SEALED_MAGIC):])
@@ -142,14 +159,14 @@ def _unseal(path: Path, blob: bytes, passphrase: str | None) -> bytes:
     except (ValueError, KeyError, TypeError):
         ok = False
     if not ok:
-        raise KeyFileError(f"{path}: sealed key header is damaged or uses an unsupported cipher")
+        raise KeyFileError(f"{path}: sealed {what} header is damaged or uses an unsupported cipher")
     if passphrase is None:
-        raise KeyFileError(f"{path}: this key is sealed with a passphrase; please give the passphrase")
+        raise KeyFileError(f"{path}: this {what} is sealed with a passphrase; please give the passphrase")
     try:
         return AESGCM(_derive(passphrase, salt, n, r, p)).decrypt(nonce, ciphertext, prefix)
     except InvalidTag:
         # GCM cannot tell these apart, and must not: either way nothing is trusted.
-        raise KeyFileError(f"{path}: wrong passphrase, or the key file was modified (or truncated)") from None
+        raise KeyFileError(f"{path}: wrong passphrase, or the {what} file was modified (or truncated)") from None
 
 
 def _parse_plain(path: Path, data: bytes) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
@@ -193,8 +210,8 @@ def load_key(path: str | os.PathLike, passphrase: str | None = None,
         raise KeyFileError(f"{path}: no such key file") from None
     except OSError as e:
         raise KeyFileError(f"{path}: cannot read the key file ({e.strerror or e})") from None
-    if blob.startswith(_SEALED_PREFIX):
-        blob = _unseal(path, blob, passphrase)
+    if is_sealed(blob):
+        blob = unseal(path, blob, passphrase)
     elif passphrase is not None:
         warnings.warn(f"{path}: this key is not sealed; the passphrase was not needed", UserWarning,
                       stacklevel=2)

@@ -9,9 +9,20 @@ from torch import nn
 
 from .config import HeadsConfig
 from .io import load_scaffold, save_scaffold
-from .model import AnchorModel, ScaffoldHeads
+from .model import AnchorModel, ScaffoldHeads, generate_neural_gaussians
+from .model.neural_gaussians import camera_center_from_viewmat
 from .rasterizer import RasterOptions
-from .render import render_view
+from .render import camera_tensors, render_view
+
+
+def decode_all(anchors: AnchorModel, heads: ScaffoldHeads, camera, *, camera_index: int | None = None,
+               offset_source=None) -> dict:
+    """``generate_neural_gaussians`` of every anchor as seen from ``camera`` (no visibility mask)."""
+    viewmat, _ = camera_tensors(camera, anchors.xyz.device)
+    appearance = (camera_index or 0) if heads.appearance_dim else None
+    extra = {"offset_source": offset_source} if offset_source is not None else {}
+    return generate_neural_gaussians(anchors, heads, camera_center_from_viewmat(viewmat), None,
+                                     camera_index=appearance, **extra)
 
 
 def build_heads(config: HeadsConfig, num_cameras: int = 0) -> ScaffoldHeads:
@@ -49,6 +60,14 @@ class ScaffoldModel(nn.Module):
         """The public render of one view (see ``render_view``): ``image`` [H, W, 3], ``alpha``
         [H, W, 1], ``info``, ``gaussians``. background: [3] colour, or None for black."""
         return render_view(self.anchors, self.heads, camera, background, options, camera_index=camera_index)
+
+    @torch.no_grad()
+    def gaussians(self, camera, *, camera_index: int | None = None) -> dict:
+        """Every anchor decoded into its Gaussians with the view directions of ``camera``, without
+        frustum culling (a render decodes only the anchors it sees): the whole scene, for export.
+        Scaffold-GS's decoding depends on the view, so an export is that of one camera's decoding.
+        Returns ``generate_neural_gaussians``' dict (means [M, 3], quats, scales, opacities, colors)."""
+        return decode_all(self.anchors, self.heads, camera, camera_index=camera_index)
 
     def save(self, directory: str | os.PathLike) -> None:
         """Write Scaffold-GS's files (point_cloud.ply + the MLPs) into ``directory``."""

@@ -33,10 +33,11 @@ def main(argv=None) -> int:
     except (ValueError, FileNotFoundError, KeyFileError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # a full disk, a read-only folder: what was written before stays as it was
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+        return 2
     if code == 0 and not getattr(args, "quiet", False):
         print(f"done in {time.perf_counter() - t0:.1f} s")
     return code
 
-
-if __name__ == "__main__":
-    sys.exit(main())

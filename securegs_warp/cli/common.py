@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import os
 import signal
 import sys
 
@@ -20,7 +21,22 @@ class CommandError(ValueError):
 
 
 def resolve_device(name: str | None) -> torch.device:
-    """``name`` as a torch device this torch can use (default: CUDA when present, else the CPU)."""
+    """``name`` as a torch device this torch can use (default: CUDA when present, else the CPU).
+    On the CPU, torch gets half the cores (see ``cpu_threads``)."""
+    device = _device(name)
+    if device.type == "cpu":
+        torch.set_num_threads(cpu_threads())
+    return device
+
+
+def cpu_threads() -> int:
+    """Torch's thread count for CPU training: half the cores (at least one). The MLPs are small and
+    Warp's CPU kernels run on one thread, so more threads gain little alone, while two runs that each
+    take every core oversubscribe the machine and slow each other down many times over."""
+    return max(1, (os.cpu_count() or 2) // 2)
+
+
+def _device(name: str | None) -> torch.device:
     if name is None:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
@@ -39,11 +55,26 @@ def resolve_device(name: str | None) -> torch.device:
 
 
 def quiet_warp() -> None:
-    """Warp without its banner and module-load lines (they would interleave with the progress bar)."""
+    """Warp without its banner and module-load lines (they would interleave with the progress bar).
+
+    Where torch sees no CUDA device, Warp's native library still looks for the CUDA driver when it
+    loads and prints a warning from C to file descriptor 2 on every command; that one line is
+    silenced by pointing descriptor 2 at /dev/null while Warp initialises."""
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING  # Warp >= 1.19 (the project's minimum): `quiet` is gone
-    wp.init()
+    if torch.cuda.is_available():
+        wp.init()
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -155,12 +186,14 @@ def _lookup(config, field: str):
     return to_dict(config) if dataclasses.is_dataclass(config) else config
 
 
-def start_training(trainer, run: RunFolder, config: RunConfig, resume: bool, args, finish) -> int:
+def start_training(trainer, run: RunFolder, config: RunConfig, resume: bool, args, finish,
+                   passphrase: str | None = None) -> int:
+    """Resume or start, record the config, and train; ``passphrase`` seals every checkpoint."""
     if resume:
-        trainer.load_checkpoint(run.checkpoint)
+        trainer.load_checkpoint(run.checkpoint, passphrase)
         print(f"resuming {run.path} at step {trainer.step_count}")
     run.write_json(run.config, to_dict(config))
-    return train_loop(trainer, run, args, finish)
+    return train_loop(trainer, run, args, finish, passphrase)
 
 
 @contextlib.contextmanager
@@ -180,7 +213,7 @@ def _interrupt_between_steps():
             signal.signal(s, h)
 
 
-def train_loop(trainer, run: RunFolder, args, finish) -> int:
+def train_loop(trainer, run: RunFolder, args, finish, passphrase: str | None = None) -> int:
     """Step the trainer to its iteration count with a progress bar, logs and checkpoints."""
     from tqdm import tqdm
 
@@ -195,25 +228,25 @@ def train_loop(trainer, run: RunFolder, args, finish) -> int:
                 stop["signal"], stats = signal.SIGINT, None
             if stats is None:
                 bar.close()
-                return _interrupted(trainer, run)
+                return _interrupted(trainer, run, passphrase)
             bar.update(1)
             bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", anchors=stats["anchors"])
             step = trainer.step_count
             if step % args.log_every == 0 or step == total or "grown" in stats or "nonfinite_grads" in stats:
                 run.append_log({"step": step, "seconds": round(trainer.train_seconds, 2), **stats})
             if step % args.checkpoint_every == 0:
-                trainer.save_checkpoint(run.checkpoint)
+                trainer.save_checkpoint(run.checkpoint, passphrase)
             if stop["signal"] is not None:
                 bar.close()
-                return _interrupted(trainer, run)
+                return _interrupted(trainer, run, passphrase)
     bar.close()
-    trainer.save_checkpoint(run.checkpoint)
+    trainer.save_checkpoint(run.checkpoint, passphrase)
     finish()
     return 0
 
 
-def _interrupted(trainer, run: RunFolder) -> int:
-    trainer.save_checkpoint(run.checkpoint)
+def _interrupted(trainer, run: RunFolder, passphrase: str | None) -> int:
+    trainer.save_checkpoint(run.checkpoint, passphrase)
     print(f"\ninterrupted at step {trainer.step_count}; checkpoint saved. Continue with the same command and "
           "--resume.", file=sys.stderr)
     return 130

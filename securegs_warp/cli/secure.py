@@ -1,8 +1,10 @@
 """``securegs hide``, ``reveal`` and ``demo``: make a container, open it with or without the key."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
+import shutil
 import sys
 
 import numpy as np
@@ -12,6 +14,7 @@ from ..config import RunConfig, SecureConfig, to_dict
 from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, folder_size_mb, png_name, save_png
+from ..keys import is_sealed
 from ..secure.container import open_container, save_container
 from ..secure.payload import PayloadSpec
 from ..secure.security import exposure
@@ -70,7 +73,7 @@ def passphrase_from(args) -> str | None:
 def hide_config(args, device) -> RunConfig:
     """The run's config from the command line; the payload is checked against the scene here."""
     config = config_from_args(args, RunConfig(secure=SecureConfig()), HIDE_DEFAULTS, device)
-    spec = PayloadSpec.parse(config.secure.payload, seed=config.train.seed)
+    spec = PayloadSpec.parse(config.secure.payload)
     scene = config.scene
     if spec.kind in ("object", "scene"):
         if not scene.builtin:
@@ -92,10 +95,36 @@ def cmd_hide(args) -> int:
     passphrase = passphrase_from(args)  # fail before training, not after
     quiet_warp()
     run = RunFolder(args.out)
-    resume = prepare_run(run, config, args)
-    trainer = SecureTrainer(config.scene.load(), config.train, config.secure, device=device)
-    return start_training(trainer, run, config, resume, args,
-                          finish=lambda: finish_container(trainer, run, config, passphrase))
+    with private_files():
+        record = recorded(config)
+        resume = prepare_run(run, record, args)
+        if resume and passphrase is None and is_sealed(run.checkpoint.read_bytes()[:64]):
+            raise CommandError(f"{run.path} is a sealed run (its key and checkpoints are sealed): resume it with "
+                               "--passphrase-env VAR")
+        run.path.mkdir(parents=True, exist_ok=True)
+        os.chmod(run.path, 0o700)
+        trainer = SecureTrainer(config.scene.load(), config.train, config.secure, device=device)
+        return start_training(trainer, run, record, resume, args,
+                              finish=lambda: finish_container(trainer, run, config, passphrase), passphrase=passphrase)
+
+
+def recorded(config: RunConfig) -> RunConfig:
+    """What config.json records: the config with a literal bit message replaced by its length
+    (``bits:0b1011`` -> ``bits:4``). The message itself is kept only in the key and the
+    checkpoints, which a sealed run seals; resuming takes it from the checkpoint."""
+    payload = PayloadSpec.parse(config.secure.payload).describe()
+    return dataclasses.replace(config, secure=dataclasses.replace(config.secure, payload=payload))
+
+
+@contextlib.contextmanager
+def private_files():
+    """Files and folders created meanwhile are its owner's only (umask 077): a SecureGS run folder
+    holds the private heads (checkpoints), scores of the hidden payload and renders of it."""
+    previous = os.umask(0o077)
+    try:
+        yield
+    finally:
+        os.umask(previous)
 
 
 def key_metadata(trainer) -> dict:
@@ -110,7 +139,8 @@ def key_metadata(trainer) -> dict:
             "background": None if scene.background is None else [float(v) for v in scene.background],
             "hidden_background": p.background.tolist(), "cameras": [c.to_record() for c in cams],
             "hidden_views": [c.name for c in cams] if p.has_images else [],
-            "image_view": p.image_view}
+            "image_view": p.image_view,
+            "message": None if p.bits is None else "".join(str(int(b)) for b in p.bits.tolist())}
 
 
 def finish_container(trainer, run: RunFolder, config: RunConfig, passphrase: str | None) -> dict:
@@ -163,6 +193,7 @@ def cmd_reveal(args) -> int:
     quiet_warp()
     model, meta = open_container(args.release, args.key, passphrase_from(args), device=device)
     out = RunFolder(args.out)
+    prepare_reveal_folder(out, args.force)
     if model.private is None:
         if getattr(args, "scene.source") is None:
             raise CommandError("without --key, reveal renders the cover scene only and needs --scene for its cameras "
@@ -184,16 +215,40 @@ def cmd_reveal(args) -> int:
         out.write_json(out.path / "bits.json", {"bits": bits.tolist()})
     if model.renders_hidden:
         hidden_bg = torch.tensor(meta["hidden_background"], device=device, dtype=torch.float32)
-        names = set(meta.get("hidden_views", []))
-        for cam in cams:
-            if cam.name in names:
-                r = model.render_hidden(cam, raster, background=hidden_bg)
-                save_png(out.renders / png_name(cam.name, "hidden_"), r["image"].clamp(0, 1))
-        g = r["gaussians"]
+        hidden_cams = [cam for cam in cams if cam.name in set(meta.get("hidden_views", []))]
+        for cam in hidden_cams:
+            r = model.render_hidden(cam, raster, background=hidden_bg)
+            save_png(out.renders / png_name(cam.name, "hidden_"), r["image"].clamp(0, 1))
+        g = model.hidden_gaussians(hidden_cams[0])
         ply = out.path / "hidden_3dgs.ply"
         export_3dgs_ply(ply, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"])
-        print(f"hidden views in {out.renders}; hidden Gaussians ({g['means'].shape[0]}) in {ply}")
+        print(f"hidden views in {out.renders}; hidden Gaussians of every anchor ({g['means'].shape[0]}, decoded "
+              f"with the view directions of {hidden_cams[0].name}) in {ply}")
     return 0
+
+
+REVEAL_FILES = ("bits.json", "hidden_3dgs.ply")
+
+
+def prepare_reveal_folder(out: RunFolder, force: bool) -> None:
+    """Refuse an --out that holds anything but an earlier reveal; replace that one only with --force."""
+    path = out.path
+    if path.exists() and not path.is_dir():
+        raise CommandError(f"--out {path} is a file, not a folder")
+    if not path.is_dir() or not any(path.iterdir()):
+        return
+    ours = [path / name for name in REVEAL_FILES] + [out.renders]
+    renders_ours = not out.renders.exists() or all(
+        p.suffix == ".png" and p.name.startswith(("public_", "hidden_")) for p in out.renders.iterdir())
+    others = sorted(p.name for p in path.iterdir() if p not in ours)
+    if others or not renders_ours:
+        raise CommandError(f"--out {path} holds other files ({', '.join(others) or 'renders/ of something else'}); "
+                           "choose a new or empty folder")
+    if not force:
+        raise CommandError(f"--out {path} holds an earlier reveal; add --force to replace it")
+    for name in REVEAL_FILES:
+        (path / name).unlink(missing_ok=True)
+    shutil.rmtree(out.renders, ignore_errors=True)
 
 
 def args_scene_cameras(args) -> list[Camera]:
@@ -207,8 +262,9 @@ def args_scene_cameras(args) -> list[Camera]:
 def cmd_demo(args) -> int:
     from . import build_parser
 
-    argv = ["hide", "--out", args.out, "--iterations", str(args.iterations), "--force"]
+    argv = ["hide", "--out", args.out, "--iterations", str(args.iterations)]
     argv += ["--quiet"] if args.quiet else []
+    argv += ["--force"] if args.force else []
     argv += ["--device", args.device] if args.device else []
     return cmd_hide(build_parser().parse_args(argv))
 
@@ -226,6 +282,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--key", help="the key file; without it only the cover scene renders")
     p.add_argument("--passphrase-env", help="environment variable holding the key's passphrase")
     p.add_argument("--out", default="revealed", help="folder for the renders (default: revealed)")
+    p.add_argument("--force", action="store_true", help="replace an earlier reveal in --out (nothing else)")
     p.add_argument("--device", help="cpu or cuda[:N] (default: cuda when available)")
     add_config_flags(p, SCENE_FLAGS)
     p.set_defaults(func=cmd_reveal)
@@ -237,4 +294,6 @@ def add_parsers(sub) -> None:
                    help=f"training steps (default: {HIDE_DEFAULTS['train.iterations']})")
     p.add_argument("--device", help="cpu or cuda[:N] (default: cuda when available)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--force", action="store_true",
+                   help="start over in --out, replacing the files an earlier run wrote there (nothing else)")
     p.set_defaults(func=cmd_demo)

@@ -107,11 +107,11 @@ def cmd_export(args) -> int:
     cams = config.scene.load().train
     if not 0 <= args.view < len(cams):
         raise CommandError(f"--view must be in [0, {len(cams)})")
-    with torch.no_grad():
-        g = model.render(cams[args.view], config.train.raster)["gaussians"]
+    g = model.gaussians(cams[args.view], camera_index=args.view)
     out = args.out or str(run.path / "export_3dgs.ply")
     export_3dgs_ply(out, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"])
-    print(f"wrote {g['means'].shape[0]} Gaussians (decoded for view {cams[args.view].name}) to {out}")
+    print(f"wrote {g['means'].shape[0]} Gaussians of all {model.anchors.num_anchors} anchors (decoded with the view "
+          f"directions of training view {cams[args.view].name}) to {out}")
     return 0
 
 
@@ -131,6 +131,8 @@ def add_parsers(sub) -> None:
             p.add_argument("--split", choices=("test", "train"), default="test", help="which views (default: test)")
             p.add_argument("--out", help="folder for renders/ (default: the run folder)")
         if name == "export":
-            p.add_argument("--view", type=int, default=0, help="training view the Gaussians are decoded for")
+            p.add_argument("--view", type=int, default=0,
+                           help="training view whose view directions decode every anchor (Scaffold-GS's colours "
+                                "and opacities depend on the view; default 0)")
             p.add_argument("--out", help="PLY path (default RUN/export_3dgs.ply)")
         p.set_defaults(func=func)

@@ -8,7 +8,7 @@ from ..model import AnchorModel, ScaffoldHeads
 from ..model.neural_gaussians import AnchorViewInputs
 from ..rasterizer import RasterOptions
 from ..render import render_view
-from ..scaffold_model import ScaffoldModel
+from ..scaffold_model import ScaffoldModel, decode_all
 from .heads import PrivateHeads
 
 
@@ -43,6 +43,16 @@ class SecureModel(ScaffoldModel):
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
         return render_view(self.anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad)
+
+    @torch.no_grad()
+    def hidden_gaussians(self, camera) -> dict:
+        """Every anchor decoded by the key into hidden Gaussians with ``camera``'s view directions (no
+        culling): the whole hidden payload, for export (see ``ScaffoldModel.gaussians``)."""
+        private = self._key()
+        if private.decoder is None:
+            raise ValueError("this payload hides no image: there are no hidden Gaussians")
+        source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
+        return decode_all(self.anchors, private.decoder, camera, offset_source=source)
 
     def _explicit_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""

@@ -3,11 +3,13 @@
 A payload spec is a string such as ``object``, ``scene``, ``image``, ``image:logo.png@3``,
 ``bits:48`` or a combination ``object+bits:48``. Objects and scenes come with the scene data (a
 hidden view per camera); an image is a file, or ``builtin`` (a procedural emblem); bits are drawn
-from the seed or given literally (``bits:0110...``).
+drawn from the operating system's secure random source (not from the training seed, which
+config.json records) or given literally (``bits:0b0110...``).
 """
 from __future__ import annotations
 
 import dataclasses
+import secrets
 
 import numpy as np
 import torch
@@ -28,17 +30,16 @@ class PayloadSpec:
     image_view: int = 0  # image payload: the training view it is hidden at
     bits: int = 0
     bit_string: str | None = None
-    seed: int = 0
 
     @classmethod
-    def parse(cls, text: str, seed: int = 0) -> "PayloadSpec":
+    def parse(cls, text: str) -> "PayloadSpec":
         """Parse a payload string; anything ambiguous or unknown is refused with a ValueError.
 
-        ``bits:L`` is L random bits (drawn from ``seed``); a literal message is written with a
+        ``bits:L`` is L random bits (drawn when the payload is built); a literal message is written with a
         leading ``0b`` or a leading zero (``bits:0b1011``, ``bits:01101``), so that a length is never
         read as a message or the other way round. At most one of object, scene and image.
         """
-        spec = cls(seed=seed)
+        spec = cls()
         if not text.strip():
             raise ValueError(f"empty payload {text!r}")
         seen = set()
@@ -153,7 +154,8 @@ def build_payload(spec: PayloadSpec, scene: SceneData, device) -> Payload:
         if spec.bit_string:
             values = [int(b) for b in spec.bit_string]
         else:
-            values = torch.randint(0, 2, (spec.bits,), generator=torch.Generator().manual_seed(spec.seed)).tolist()
+            # A message derived from the run's seed could be recomputed from config.json.
+            values = [secrets.randbits(1) for _ in range(spec.bits)]
         bits = to(values)
     background = scene.hidden_background if scene.hidden_background is not None else scene.background
     if spec.kind == "image" or background is None:

@@ -35,7 +35,7 @@ class SecureTrainer(ScaffoldTrainer):
 
     def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
         self.secure = secure
-        self.spec = PayloadSpec.parse(secure.payload, seed=config.seed)
+        self.spec = PayloadSpec.parse(secure.payload)
         # Built before the model, so that a payload the scene cannot carry fails before training.
         self.payload = build_payload(self.spec, scene, torch.device(device))
         if secure.hidden_weight is not None:
@@ -123,8 +123,6 @@ class SecureTrainer(ScaffoldTrainer):
             out["fps_hidden"] = evaluation.render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:
             out["bit_accuracy"] = self.bit_accuracy()
-            out["bits"] = p.bits.long().tolist()
-            out["bits_decoded"] = self.model.decode_bits().tolist()
         return out
 
     @torch.no_grad()
@@ -141,8 +139,13 @@ class SecureTrainer(ScaffoldTrainer):
     # -- checkpoints ----------------------------------------------------------------------------
 
     def checkpoint_state(self) -> dict:
-        return {**super().checkpoint_state(), "private": self.model.private.state_dict()}
+        state = {**super().checkpoint_state(), "private": self.model.private.state_dict()}
+        if self.payload.bits is not None:  # drawn at random when the run began: resuming keeps it
+            state["message"] = self.payload.bits.detach().cpu()
+        return state
 
     def restore(self, state: dict, path) -> None:
         super().restore(state, path)
         self.model.private.load_state_dict(state["private"])
+        if self.payload.bits is not None:
+            self.payload.bits = state["message"].to(self.device)

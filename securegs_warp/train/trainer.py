@@ -16,7 +16,7 @@ import torch
 from .. import evaluation
 from ..config import TrainConfig, first_difference, from_dict, to_dict
 from ..data import Camera, SceneData
-from ..io.atomic import atomic_write
+from ..keys import is_sealed, seal, unseal, write_private
 from ..model import ANCHOR_PARAM_NAMES, AnchorModel, anchor_param_groups
 from ..scaffold_model import ScaffoldModel, build_heads
 from ..strategies import ScaffoldStrategy
@@ -186,14 +186,31 @@ class ScaffoldTrainer:
             "order": list(self._order),
         }
 
-    def save_checkpoint(self, path) -> None:
+    def save_checkpoint(self, path, passphrase: str | None = None) -> None:
+        """Write ``checkpoint_state()`` atomically, owner-only; sealed like a key with ``passphrase``
+        (a SecureGS checkpoint holds the private heads, so a sealed run's checkpoints are sealed too)."""
         buffer = io.BytesIO()
         torch.save(self.checkpoint_state(), buffer)
-        atomic_write(path, lambda f: f.write(buffer.getvalue()))
+        data = buffer.getvalue()
+        write_private(path, seal(data, passphrase) if passphrase is not None else data)
 
-    def load_checkpoint(self, path) -> None:
-        """Restore a checkpoint written by ``save_checkpoint`` (tensors and numbers only)."""
-        state = torch.load(path, map_location=self.device, weights_only=True)
+    def load_checkpoint(self, path, passphrase: str | None = None) -> None:
+        """Restore a checkpoint written by ``save_checkpoint``. Only tensors and plain numbers are
+        read (``weights_only``); a sealed one needs its passphrase. A damaged, foreign or unsafe file
+        raises ValueError naming it."""
+        try:
+            blob = open(path, "rb").read()
+        except OSError as e:
+            raise ValueError(f"{path}: cannot read the checkpoint ({e.strerror or e})") from None
+        if is_sealed(blob):
+            blob = unseal(path, blob, passphrase, what="checkpoint")
+        try:
+            state = torch.load(io.BytesIO(blob), map_location=self.device, weights_only=True)
+        except Exception as e:  # torch raises UnpicklingError, RuntimeError, EOFError, zip errors ...
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise ValueError(f"{path}: not a checkpoint this version can read safely ({first[:200]})") from None
+        if not isinstance(state, dict) or not {"step", "config", "model", "heads", "optimizer"} <= set(state):
+            raise ValueError(f"{path}: not a securegs checkpoint (missing entries)")
         self.restore(state, path)
 
     def restore(self, state: dict, path) -> None:
