@@ -141,7 +141,6 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
                         # At opacity == alpha_min the log is 0, and sqrt's adjoint there is
                         # 0 / 0 = NaN even though the radius passes no gradient back (it is
                         # rounded): feed sqrt a floored copy and keep the exact 0 in the forward.
-                        # Seen as NaN opacity gradients in 1080p SecureGS training (H100, 2026-11-23).
                         log_ratio = 2.0 * wp.log(opacity / alpha_min)
                         extend = wp.where(log_ratio > 0.0,
                                           wp.min(3.33, wp.sqrt(wp.max(log_ratio, 1.0e-30))), 0.0)

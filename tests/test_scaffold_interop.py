@@ -29,46 +29,26 @@ pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit")
 class ScaffoldGSModel:
     """The loading half of Scaffold-GS's ``GaussianModel`` (scene/gaussian_model.py), on the CPU."""
 
+    # Scaffold-GS's getters, by the names its generate_neural_gaussians reads.
+    _GETTERS = {"get_appearance": "embedding_appearance", "get_featurebank_mlp": "mlp_feature_bank",
+                "get_opacity_mlp": "mlp_opacity", "get_cov_mlp": "mlp_cov", "get_color_mlp": "mlp_color",
+                "get_anchor": "_anchor"}
+
     def __init__(self, feat_dim, n_offsets, use_feat_bank, appearance_dim, add_opacity_dist, add_cov_dist,
                  add_color_dist):
-        self.feat_dim = feat_dim
-        self.n_offsets = n_offsets
-        self.use_feat_bank = use_feat_bank
-        self.appearance_dim = appearance_dim
-        self.embedding_appearance = None
-        self.add_opacity_dist = add_opacity_dist
-        self.add_cov_dist = add_cov_dist
-        self.add_color_dist = add_color_dist
-        self.scaling_activation = torch.exp
-        self.rotation_activation = torch.nn.functional.normalize
+        vars(self).update(feat_dim=feat_dim, n_offsets=n_offsets, use_feat_bank=use_feat_bank,
+                          appearance_dim=appearance_dim, embedding_appearance=None,
+                          add_opacity_dist=add_opacity_dist, add_cov_dist=add_cov_dist, add_color_dist=add_color_dist,
+                          scaling_activation=torch.exp, rotation_activation=torch.nn.functional.normalize)
 
-    @property
-    def get_appearance(self):
-        return self.embedding_appearance
+    def __getattr__(self, name):
+        if name in ScaffoldGSModel._GETTERS:
+            return getattr(self, ScaffoldGSModel._GETTERS[name])
+        raise AttributeError(name)
 
     @property
     def get_scaling(self):
         return 1.0 * self.scaling_activation(self._scaling)
-
-    @property
-    def get_featurebank_mlp(self):
-        return self.mlp_feature_bank
-
-    @property
-    def get_opacity_mlp(self):
-        return self.mlp_opacity
-
-    @property
-    def get_cov_mlp(self):
-        return self.mlp_cov
-
-    @property
-    def get_color_mlp(self):
-        return self.mlp_color
-
-    @property
-    def get_anchor(self):
-        return self._anchor
 
     def load_ply_sparse_gaussian(self, path):
         plydata = PlyData.read(path)
@@ -78,29 +58,18 @@ class ScaffoldGSModel:
                            np.asarray(plydata.elements[0]["z"])), axis=1).astype(np.float32)
         opacities = np.asarray(plydata.elements[0]["opacity"])[..., np.newaxis].astype(np.float32)
 
-        scale_names = [p.name for p in plydata.elements[0].properties if p.name.startswith("scale_")]
-        scale_names = sorted(scale_names, key=lambda x: int(x.split('_')[-1]))
-        scales = np.zeros((anchor.shape[0], len(scale_names)))
-        for idx, attr_name in enumerate(scale_names):
-            scales[:, idx] = np.asarray(plydata.elements[0][attr_name]).astype(np.float32)
+        # Scaffold-GS repeats this block for scale_, rot, f_anchor_feat and f_offset: the properties
+        # with the prefix, sorted by their trailing index, as float32 columns of a float64 array.
+        def columns(prefix):
+            names = [p.name for p in plydata.elements[0].properties if p.name.startswith(prefix)]
+            names = sorted(names, key=lambda x: int(x.split('_')[-1]))
+            values = np.zeros((anchor.shape[0], len(names)))
+            for idx, attr_name in enumerate(names):
+                values[:, idx] = np.asarray(plydata.elements[0][attr_name]).astype(np.float32)
+            return values
 
-        rot_names = [p.name for p in plydata.elements[0].properties if p.name.startswith("rot")]
-        rot_names = sorted(rot_names, key=lambda x: int(x.split('_')[-1]))
-        rots = np.zeros((anchor.shape[0], len(rot_names)))
-        for idx, attr_name in enumerate(rot_names):
-            rots[:, idx] = np.asarray(plydata.elements[0][attr_name]).astype(np.float32)
-
-        anchor_feat_names = [p.name for p in plydata.elements[0].properties if p.name.startswith("f_anchor_feat")]
-        anchor_feat_names = sorted(anchor_feat_names, key=lambda x: int(x.split('_')[-1]))
-        anchor_feats = np.zeros((anchor.shape[0], len(anchor_feat_names)))
-        for idx, attr_name in enumerate(anchor_feat_names):
-            anchor_feats[:, idx] = np.asarray(plydata.elements[0][attr_name]).astype(np.float32)
-
-        offset_names = [p.name for p in plydata.elements[0].properties if p.name.startswith("f_offset")]
-        offset_names = sorted(offset_names, key=lambda x: int(x.split('_')[-1]))
-        offsets = np.zeros((anchor.shape[0], len(offset_names)))
-        for idx, attr_name in enumerate(offset_names):
-            offsets[:, idx] = np.asarray(plydata.elements[0][attr_name]).astype(np.float32)
+        scales, rots = columns("scale_"), columns("rot")
+        anchor_feats, offsets = columns("f_anchor_feat"), columns("f_offset")
         offsets = offsets.reshape((offsets.shape[0], 3, -1))
 
         self._anchor_feat = nn.Parameter(torch.tensor(anchor_feats, dtype=torch.float).requires_grad_(True))

@@ -18,20 +18,8 @@ from ..keys import is_sealed
 from ..secure.container import open_container, save_container
 from ..secure.payload import PayloadSpec
 from ..secure.security import exposure
-from .common import (
-    SCENE_FLAGS,
-    TRAIN_FLAGS,
-    CommandError,
-    add_config_flags,
-    add_run_arguments,
-    check_run_arguments,
-    config_from_args,
-    prepare_run,
-    print_metrics,
-    quiet_warp,
-    resolve_device,
-    start_training,
-)
+from . import common
+from .common import CommandError
 from .train import background_of, evaluate_model
 
 HIDE_DEFAULTS = {"train.iterations": 400}
@@ -72,7 +60,7 @@ def passphrase_from(args) -> str | None:
 
 def hide_config(args, device) -> RunConfig:
     """The run's config from the command line; the payload is checked against the scene here."""
-    config = config_from_args(args, RunConfig(secure=SecureConfig()), HIDE_DEFAULTS, device)
+    config = common.config_from_args(args, RunConfig(secure=SecureConfig()), HIDE_DEFAULTS, device)
     spec = PayloadSpec.parse(config.secure.payload)
     scene = config.scene
     if spec.kind in ("object", "scene"):
@@ -89,22 +77,22 @@ def hide_config(args, device) -> RunConfig:
 def cmd_hide(args) -> int:
     from ..secure import SecureTrainer
 
-    check_run_arguments(args)
-    device = resolve_device(args.device)
+    common.check_run_arguments(args)
+    device = common.resolve_device(args.device)
     config = hide_config(args, device)
     passphrase = passphrase_from(args)  # fail before training, not after
-    quiet_warp()
+    common.quiet_warp()
     run = RunFolder(args.out)
     with private_files():
         record = recorded(config)
-        resume = prepare_run(run, record, args)
+        resume = common.prepare_run(run, record, args)
         if resume and passphrase is None and is_sealed(run.checkpoint.read_bytes()[:64]):
             raise CommandError(f"{run.path} is a sealed run (its key and checkpoints are sealed): resume it with "
                                "--passphrase-env VAR")
         run.path.mkdir(parents=True, exist_ok=True)
         os.chmod(run.path, 0o700)
         trainer = SecureTrainer(config.scene.load(), config.train, config.secure, device=device)
-        return start_training(trainer, run, record, resume, args,
+        return common.start_training(trainer, run, record, resume, args,
                               finish=lambda: finish_container(trainer, run, config, passphrase), passphrase=passphrase)
 
 
@@ -161,7 +149,7 @@ def finish_container(trainer, run: RunFolder, config: RunConfig, passphrase: str
                                        scene.points, radius)
     write_demo_renders(trainer, run)
     run.write_json(run.metrics, metrics)
-    print_metrics(metrics)
+    common.print_metrics(metrics)
     if metrics.get("hidden_learnt") is False:
         print(f"warning: the hidden payload was not learnt: its render ({metrics['psnr_hidden']:.2f} dB) is not "
               f"1 dB better than a flat image of each target's mean colour ({metrics['psnr_hidden_flat']:.2f} dB). "
@@ -189,8 +177,8 @@ def cmd_reveal(args) -> int:
     from ..rasterizer import RasterOptions
     from ..config import from_dict
 
-    device = resolve_device(args.device)
-    quiet_warp()
+    device = common.resolve_device(args.device)
+    common.quiet_warp()
     model, meta = open_container(args.release, args.key, passphrase_from(args), device=device)
     out = RunFolder(args.out)
     prepare_reveal_folder(out, args.force)
@@ -271,8 +259,8 @@ def cmd_demo(args) -> int:
 
 def add_parsers(sub) -> None:
     p = sub.add_parser("hide", help="train a container hiding a payload; write the public release and the key")
-    add_config_flags(p, SCENE_FLAGS + TRAIN_FLAGS + SECURE_FLAGS, HIDE_DEFAULTS)
-    add_run_arguments(p, default_out="runs/secure")
+    common.add_config_flags(p, common.SCENE_FLAGS + common.TRAIN_FLAGS + SECURE_FLAGS, HIDE_DEFAULTS)
+    common.add_run_arguments(p, default_out="runs/secure")
     p.add_argument("--passphrase-env", help="seal the key with the passphrase in this environment variable")
     p.set_defaults(func=cmd_hide)
 
@@ -284,7 +272,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", default="revealed", help="folder for the renders (default: revealed)")
     p.add_argument("--force", action="store_true", help="replace an earlier reveal in --out (nothing else)")
     p.add_argument("--device", help="cpu or cuda[:N] (default: cuda when available)")
-    add_config_flags(p, SCENE_FLAGS)
+    common.add_config_flags(p, common.SCENE_FLAGS)
     p.set_defaults(func=cmd_reveal)
 
     p = sub.add_parser("demo", help="hide an object and 48 bits in the built-in scene; write release, key, "

@@ -23,7 +23,7 @@ class PrivateHeads(nn.Module):
         the message is the average over anchors (each anchor votes). Without biases the head cannot
         learn the message as a constant of its own (F_b†(0) = 0): it is read from the features.
         It is not a watermark test, though: features trained on the same scene without the
-        message can decode it too (seen on a small scene), since the head maps what such features
+        message can decode it too (docs/results.md), since the head maps what such features
         have in common to the message.
     scale_offsets: hidden offsets are in units of the anchor's offset scale exp(l_v[:3]), as the
         public offsets are. The paper writes x_v + F_o†(...) without l_v; scaling keeps the MLP's
