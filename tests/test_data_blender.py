@@ -131,3 +131,125 @@ def test_errors(scene, tmp_path):
     (root / "transforms_train.json").unlink()
     with pytest.raises(DataError, match="transforms_train.json not found"):
         load_blender(root)
+
+
+def _edit_train(root, edit):
+    """Rewrite transforms_train.json with edit(meta) applied (edit changes meta in place)."""
+    path = root / "transforms_train.json"
+    meta = json.loads(path.read_text())
+    edit(meta)
+    path.write_text(json.dumps(meta))
+
+
+def _set_frame(index, key, value):
+    def edit(meta):
+        meta["frames"][index][key] = value
+    return edit
+
+
+def _set_pose(index, change):
+    def edit(meta):
+        c2w = np.array(meta["frames"][index]["transform_matrix"])
+        meta["frames"][index]["transform_matrix"] = change(c2w).tolist()
+    return edit
+
+
+def _drop(index, key):
+    def edit(meta):
+        del meta["frames"][index][key]
+    return edit
+
+
+FRAME = r"transforms_train\.json: frame 1"
+POSE = rf"{FRAME}: 'transform_matrix' must be a rigid camera-to-world transform"
+ANGLE = r"transforms_train\.json: 'camera_angle_x' must be .*a number of radians in \(0, π\)"
+
+
+@pytest.mark.parametrize("edit, expected", [
+    pytest.param(lambda m: m.update(frames=5),
+                 r"transforms_train\.json: 'frames' is a number; expected a list of frame objects",
+                 id="frames-not-a-list"),
+    pytest.param(lambda m: m.update(frames={"a": 1}), r"'frames' is an object; expected a list", id="frames-object"),
+    pytest.param(lambda m: m["frames"].__setitem__(1, "r_1.png"),
+                 rf"{FRAME} is a string; expected an object with 'file_path' and 'transform_matrix'",
+                 id="frame-not-object"),
+    pytest.param(_drop(1, "transform_matrix"),
+                 rf"{FRAME} needs 'file_path' and a numeric 'transform_matrix'; it has no 'transform_matrix' "
+                 r"\(expected a 4x4 list", id="no-matrix"),
+    pytest.param(_set_frame(1, "transform_matrix", "identity"),
+                 rf"{FRAME}: 'transform_matrix' must be a 4x4 list of numbers \(4 rows of 4\)", id="matrix-string"),
+    pytest.param(_set_frame(1, "transform_matrix", 5), rf"{FRAME}: 'transform_matrix' must be a 4x4 list",
+                 id="matrix-number"),
+    pytest.param(_set_frame(1, "transform_matrix", {"0": [1, 0, 0, 0]}), rf"{FRAME}: 'transform_matrix' must be a 4x4",
+                 id="matrix-object"),
+    pytest.param(_set_frame(1, "transform_matrix", np.eye(4)[:3].tolist()), rf"{FRAME}: 'transform_matrix' must be",
+                 id="matrix-3x4"),
+    pytest.param(_set_frame(1, "transform_matrix", [[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1]]),
+                 rf"{FRAME}: 'transform_matrix' must be a 4x4", id="matrix-ragged"),
+    pytest.param(_set_frame(1, "transform_matrix", [["1", "0", "0", "0"]] + np.eye(4)[1:].tolist()),
+                 rf"{FRAME}: 'transform_matrix' must be a 4x4 list of numbers", id="matrix-strings"),
+    pytest.param(_set_frame(1, "transform_matrix", [[True, 0, 0, 0]] + np.eye(4)[1:].tolist()),
+                 rf"{FRAME}: 'transform_matrix' must be a 4x4 list of numbers", id="matrix-bool"),
+    pytest.param(_set_pose(1, lambda m: m * np.where(np.arange(16).reshape(4, 4) == 5, np.nan, 1.0)),
+                 rf"{FRAME}: 'transform_matrix' has non-finite entries; expected finite numbers", id="nan"),
+    pytest.param(_set_pose(1, lambda m: np.where(np.arange(16).reshape(4, 4) < 12, 0.0, m)), POSE, id="singular"),
+    pytest.param(_set_pose(1, lambda m: m @ np.diag([2.0, 2.0, 2.0, 1.0])), POSE, id="scaled"),
+    pytest.param(_set_pose(1, lambda m: m @ np.diag([-1.0, 1.0, 1.0, 1.0])), POSE, id="reflection"),
+    pytest.param(_set_pose(1, lambda m: m + np.triu(np.ones((4, 4)), 1) * 0.1 * (np.arange(4) < 3)[:, None]), POSE,
+                 id="sheared"),
+    pytest.param(_set_pose(1, lambda m: np.vstack([m[:3], [0.0, 0.0, 1.0, 1.0]])),
+                 rf"{FRAME}: 'transform_matrix' must have bottom row \[0, 0, 0, 1\]", id="bottom-row"),
+    pytest.param(_drop(1, "file_path"), rf"{FRAME} needs .*; it has no 'file_path' \(expected the image path",
+                 id="no-file-path"),
+    pytest.param(_set_frame(1, "file_path", 7), rf"{FRAME}: 'file_path' is a number; expected a string",
+                 id="file-path-int"),
+    pytest.param(_set_frame(1, "file_path", ""), rf"{FRAME}: 'file_path' is empty; expected", id="file-path-empty"),
+    pytest.param(lambda m: m.update(camera_angle_x="wide"), ANGLE, id="angle-string"),
+    pytest.param(lambda m: m.update(camera_angle_x=[0.8]), ANGLE, id="angle-list"),
+    pytest.param(lambda m: m.update(camera_angle_x=True), ANGLE, id="angle-bool"),
+    pytest.param(lambda m: m.update(camera_angle_x=0), ANGLE, id="angle-zero"),
+    pytest.param(lambda m: m.update(camera_angle_x=-0.5), ANGLE, id="angle-negative"),
+    pytest.param(lambda m: m.update(camera_angle_x=float(np.pi)), ANGLE, id="angle-pi"),
+    pytest.param(lambda m: m.update(camera_angle_x=40.0), ANGLE, id="angle-degrees"),
+    pytest.param(lambda m: m.update(camera_angle_x=float("nan")), ANGLE, id="angle-nan"),
+])
+def test_bad_transforms(scene, edit, expected):
+    """Each malformed part of a transforms file is a one-line DataError naming the file, the frame
+    and what is valid, not a TypeError or KeyError from deep inside, nor a NaN camera."""
+    root, _ = scene
+    _edit_train(root, edit)
+    with pytest.raises(DataError, match=expected) as caught:
+        load_blender(root)
+    assert "\n" not in str(caught.value)
+
+
+def test_top_level_must_be_an_object(scene):
+    root, _ = scene
+    (root / "transforms_train.json").write_text("[1, 2]")
+    with pytest.raises(DataError, match=r"transforms_train\.json: expected a JSON object with 'camera_angle_x' and "
+                                        r"'frames', found an array"):
+        load_blender(root)
+
+
+def test_nearly_rigid_poses_are_accepted(scene):
+    """Poses written with a few digits are rigid only to their rounding: they load."""
+    root, _ = scene
+    _edit_train(root, _set_pose(1, lambda m: np.round(m @ np.array(
+        [[np.cos(0.3), -np.sin(0.3), 0, 0], [np.sin(0.3), np.cos(0.3), 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), 5)))
+    assert len(load_blender(root).train) == 2
+
+
+def test_empty_training_frames(scene):
+    root, _ = scene
+    _edit_train(root, lambda m: m.update(frames=[]))
+    with pytest.raises(DataError, match=r"transforms_train\.json: 'frames' is empty; expected at least one training"):
+        load_blender(root)
+
+
+def test_image_outside_the_scene_folder(scene, tmp_path_factory):
+    """file_path may lead out of the scene folder; the camera is then named by its file_path."""
+    root, pixels = scene
+    outside = tmp_path_factory.mktemp("elsewhere") / "front.png"
+    iio.imwrite(outside, pixels["train/r_0.png"])
+    _edit_train(root, _set_frame(0, "file_path", str(outside)))
+    assert load_blender(root).train[0].name == str(outside)

@@ -86,3 +86,71 @@ def test_resize_is_an_area_average():
     pixels = np.random.default_rng(0).random((6, 8, 2)).astype(np.float32)
     np.testing.assert_allclose(resize_image(pixels, (4, 3)), pixels.reshape(3, 2, 4, 2, 2).mean(axis=(1, 3)), atol=1e-6)
     assert resize_image(None, (4, 3)) is None and resize_image(pixels, (8, 6)) is pixels
+
+
+def _rotated(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    viewmat = np.eye(4)
+    viewmat[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    viewmat[:3, 3] = [0.5, -1.0, 4.0]
+    return viewmat
+
+
+def _changed(matrix, index, value):
+    matrix = np.array(matrix, dtype=np.float64)
+    matrix[index] = value
+    return matrix
+
+
+GOOD_K = intrinsics_from_fov(60, 4, 3)
+NOT_ROTATION = r"camera 'bad\.png': viewmat's 3x3 block is not a rotation \(.*\); expected an orthonormal matrix"
+
+
+@pytest.mark.parametrize("viewmat, K, expected", [
+    pytest.param(_changed(_rotated(0.3), (0, 3), np.nan), GOOD_K,
+                 r"camera 'bad\.png': viewmat has non-finite entries .*nan.*; expected finite numbers",
+                 id="viewmat-nan"),
+    pytest.param(_changed(_rotated(0.3), (1, 1), np.inf), GOOD_K, r"viewmat has non-finite entries", id="viewmat-inf"),
+    pytest.param(_rotated(0.3), _changed(GOOD_K, (0, 2), np.nan),
+                 r"camera 'bad\.png': K has non-finite entries .*; expected finite numbers", id="K-nan"),
+    pytest.param(_rotated(0.3), _changed(GOOD_K, (0, 0), 0.0),
+                 r"camera 'bad\.png': K has fx=0, fy=3\.4641; expected positive focal lengths", id="fx-zero"),
+    pytest.param(_rotated(0.3), _changed(GOOD_K, (1, 1), -2.0), r"K has fx=3\.4641, fy=-2; expected positive",
+                 id="fy-negative"),
+    pytest.param(_rotated(0.3) @ np.diag([2.0, 2.0, 2.0, 1.0]), GOOD_K, NOT_ROTATION, id="scaled"),
+    pytest.param(_rotated(0.3) @ np.diag([1.0, -1.0, 1.0, 1.0]), GOOD_K, NOT_ROTATION + ".*", id="reflection"),
+    pytest.param(_changed(_rotated(0.3), (0, 2), 0.01), GOOD_K, NOT_ROTATION, id="sheared"),
+    pytest.param(_changed(np.eye(4), (slice(0, 3), slice(0, 3)), 0.0), GOOD_K, NOT_ROTATION, id="singular"),
+    pytest.param(_changed(_rotated(0.3), (3, 2), 1.0), GOOD_K,
+                 r"camera 'bad\.png': viewmat bottom row is \[0, 0, 1, 1\]; expected \[0, 0, 0, 1\]", id="bottom-row"),
+    pytest.param(_changed(_rotated(0.3), (3, 3), 2.0), GOOD_K, r"bottom row is \[0, 0, 0, 2\]", id="bottom-scale"),
+])
+def test_camera_rejects_unusable_pose_or_intrinsics(viewmat, K, expected):
+    with pytest.raises(DataError, match=expected) as caught:
+        Camera("bad.png", viewmat, K, 4, 3)
+    assert "\n" not in str(caught.value)
+
+
+def test_reflection_is_named_by_its_determinant():
+    with pytest.raises(DataError, match=r"\(determinant -1\)"):
+        Camera("bad.png", np.diag([1.0, -1.0, 1.0, 1.0]), GOOD_K, 4, 3)
+
+
+def test_camera_size_must_be_positive():
+    with pytest.raises(DataError, match=r"camera 'bad\.png': size 0x3; expected at least 1x1 pixels"):
+        Camera("bad.png", np.eye(4), GOOD_K, 0, 3)
+
+
+def test_camera_accepts_float32_rounded_rotations():
+    """Poses arrive as float32 or rounded to a few digits: rotations to within 1e-3 are accepted."""
+    viewmat = np.round(_rotated(0.3), 5).astype(np.float32)
+    camera = Camera("ok.png", viewmat, GOOD_K, 4, 3)
+    np.testing.assert_array_equal(camera.viewmat, viewmat)
+    Camera("ok.png", _changed(_rotated(0.3), (0, 2), 2e-4), GOOD_K, 4, 3)
+
+
+def test_camera_record_with_a_bad_pose_is_a_data_error():
+    record = Camera("c.png", _rotated(0.3), GOOD_K, 4, 3).to_record()
+    record["viewmat"][0] *= 3  # scales the rotation's first row
+    with pytest.raises(DataError, match=r"camera 'c\.png': viewmat's 3x3 block is not a rotation"):
+        Camera.from_record(record)

@@ -243,3 +243,70 @@ def test_simple_radial_distortion_is_ignored_with_a_warning(scene):
     radial = [c for c in data.cameras if c.K[0, 0] == c.K[1, 1]]
     assert len(radial) == 5
     np.testing.assert_array_equal(radial[0].K, [[5, 0, 4], [0, 5, 3], [0, 0, 1]])
+
+
+def _with_point(points, index, xyz):
+    return [p if k != index else (p[0], np.array(xyz, dtype=np.float64), *p[2:]) for k, p in enumerate(points)]
+
+
+def _with_pose(images, index, q=None, t=None):
+    def changed(image):
+        image_id, q0, t0, *rest = image
+        return (image_id, q0 if q is None else np.array(q, dtype=np.float64),
+                t0 if t is None else np.array(t, dtype=np.float64), *rest)
+
+    return [changed(image) if k == index else image for k, image in enumerate(images)]
+
+
+@pytest.mark.parametrize("writer, file", [(write_binary, "points3D.bin"), (write_text, "points3D.txt")])
+def test_empty_points3d(scene, writer, file):
+    """Training places its anchors on the sparse points: a model without any cannot be trained."""
+    root, (cameras, images, _), _, _ = scene
+    writer(root / "sparse" / "0", cameras, images, [])
+    with pytest.raises(DataError, match=rf"{file}: the model has no 3-D points; .*at least one"):
+        load_colmap(root)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("writer, where", [(write_binary, r"points3D\.bin: point 13 \(record 2\)"),
+                                           (write_text, r"points3D\.txt:4: point 13")])
+def test_non_finite_point(scene, writer, where, value):
+    root, (cameras, images, points), _, _ = scene
+    writer(root / "sparse" / "0", cameras, images, _with_point(points, 2, [0.5, value, 1.0]))
+    with pytest.raises(DataError, match=rf"{where} has non-finite coordinates .*; expected finite x y z"):
+        load_colmap(root)
+
+
+@pytest.mark.parametrize("q", [[0.0, 0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 1.0], [1.0, np.inf, 0.0, 0.0],
+                               [1e-30, 0.0, 0.0, 0.0]])
+@pytest.mark.parametrize("writer, file", [(write_binary, "images.bin"), (write_text, "images.txt")])
+def test_bad_quaternion(scene, writer, file, q):
+    root, (cameras, images, points), _, _ = scene
+    writer(root / "sparse" / "0", cameras, _with_pose(images, 3, q=q), points)
+    expected = rf"{file}: image 'img_03\.png' \(id {images[3][0]}\) has rotation quaternion .*; expected a finite"
+    with pytest.raises(DataError, match=expected):
+        load_colmap(root)
+
+
+@pytest.mark.parametrize("writer, file", [(write_binary, "images.bin"), (write_text, "images.txt")])
+def test_non_finite_translation(scene, writer, file):
+    root, (cameras, images, points), _, _ = scene
+    writer(root / "sparse" / "0", cameras, _with_pose(images, 4, t=[0.0, np.nan, 1.0]), points)
+    with pytest.raises(DataError, match=rf"{file}: image 'img_04\.png' .* has translation .*; expected finite"):
+        load_colmap(root)
+
+
+@pytest.mark.parametrize("camera, what", [
+    ((3, "PINHOLE", WIDTH, HEIGHT, [0.0, 6.5, 4.25, 2.75]), "focal length"),
+    ((3, "PINHOLE", WIDTH, HEIGHT, [7.5, -6.5, 4.25, 2.75]), "focal length"),
+    ((3, "PINHOLE", WIDTH, HEIGHT, [7.5, 6.5, np.nan, 2.75]), "non-finite"),
+    ((3, "SIMPLE_RADIAL", WIDTH, HEIGHT, [7.5, 4.0, 3.0, np.inf]), "non-finite"),
+    ((3, "SIMPLE_PINHOLE", WIDTH, HEIGHT, [np.inf, 4.0, 3.0]), "non-finite"),
+    ((3, "SIMPLE_PINHOLE", WIDTH, HEIGHT, [-5.0, 4.0, 3.0]), "focal length"),
+])
+@pytest.mark.parametrize("writer, file", [(write_binary, "cameras.bin"), (write_text, "cameras.txt")])
+def test_bad_intrinsics(scene, writer, file, camera, what):
+    root, (cameras, images, points), _, _ = scene
+    writer(root / "sparse" / "0", [camera, cameras[1]], images, points)
+    with pytest.raises(DataError, match=rf"{file}: camera 3 \({camera[1]}\) has {what}.*; expected"):
+        load_colmap(root)

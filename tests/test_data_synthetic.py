@@ -172,3 +172,27 @@ def test_bad_arguments():
 def test_load_scene_builds_builtin_names():
     assert load_scene("garden", **SMALL).name == "garden"
     assert load_scene("synthetic", **SMALL).name == "room"
+
+
+@pytest.mark.parametrize("argument, value, expected", [
+    ("width", 0, r"width must be an integer >= 1, got 0"),
+    ("height", -4, r"height must be an integer >= 1, got -4"),
+    ("width", 12.5, r"width must be an integer >= 1, got 12\.5"),
+    ("n_train", 0, r"n_train must be an integer >= 1, got 0"),
+    ("n_test", 0, r"n_test must be an integer >= 1 \(metrics are measured on the held-out views\), got 0"),
+    ("n_points", 0, r"n_points must be an integer >= 1 \(training places its anchors on the sparse points\), got 0"),
+    ("supersample", 0, r"supersample must be an integer >= 1, got 0"),
+    ("fov_degrees", 0.0, r"fov_degrees must be a number of degrees in \(0, 180\), got 0\.0"),
+    ("fov_degrees", 180.0, r"fov_degrees must be a number of degrees in \(0, 180\)"),
+    ("point_noise", -0.1, r"point_noise must be a finite number >= 0, got -0\.1"),
+])
+def test_out_of_range_arguments(argument, value, expected):
+    """Each is a one-line DataError naming the argument and its valid range, raised before any
+    rendering (not a Warp launch error, a division by zero, or a scene without test views)."""
+    with pytest.raises(DataError, match=expected):
+        make_synthetic_scene(**{**SMALL, argument: value})
+
+
+def test_integral_counts_of_other_types_are_accepted():
+    scene = make_synthetic_scene(width=np.int64(24), height=18.0, n_train=2, n_test=1, n_points=np.int32(50))
+    assert scene.train[0].width == 24 and scene.train[0].height == 18 and len(scene.points) == 50

@@ -14,6 +14,52 @@ import numpy as np
 
 from .errors import DataError
 
+# How far a pose's 3x3 block may be from a rotation: poses arrive as float32, or written to a few
+# digits in a JSON file, so they are rotations only to about 1e-6; a scale, shear or reflection
+# is off by far more than this.
+ROTATION_TOLERANCE = 1e-3
+
+
+def rotation_problem(rotation) -> str | None:
+    """What keeps a (3, 3) matrix from being a rotation (not orthonormal, or a reflection), within
+    ROTATION_TOLERANCE; None when it is one."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    deviation = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
+    if not deviation <= ROTATION_TOLERANCE:
+        return f"R R^T differs from the identity by {deviation:.3g}"
+    determinant = float(np.linalg.det(rotation))
+    if not abs(determinant - 1.0) <= ROTATION_TOLERANCE:
+        return f"determinant {determinant:.4g}"
+    return None
+
+
+def _numbers(values) -> str:
+    return "[" + ", ".join(f"{float(v):g}" for v in np.ravel(values)) + "]"
+
+
+def _check_camera(name: str, viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> None:
+    """DataError naming the camera when its pose is not a rigid world-to-camera transform or its
+    intrinsics cannot project (projection divides by the depth and scales by fx, fy)."""
+    if width < 1 or height < 1:
+        raise DataError(f"camera {name!r}: size {width}x{height}; expected at least 1x1 pixels")
+    for what, matrix in (("viewmat", viewmat), ("K", K)):
+        if not np.isfinite(matrix).all():
+            raise DataError(
+                f"camera {name!r}: {what} has non-finite entries {_numbers(matrix)}; expected finite numbers"
+            )
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise DataError(
+            f"camera {name!r}: K has fx={K[0, 0]:g}, fy={K[1, 1]:g}; expected positive focal lengths in pixels"
+        )
+    if not np.allclose(viewmat[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=ROTATION_TOLERANCE):
+        raise DataError(f"camera {name!r}: viewmat bottom row is {_numbers(viewmat[3])}; expected [0, 0, 0, 1]")
+    problem = rotation_problem(viewmat[:3, :3])
+    if problem is not None:
+        raise DataError(
+            f"camera {name!r}: viewmat's 3x3 block is not a rotation ({problem}); expected an orthonormal matrix "
+            f"with determinant 1 within {ROTATION_TOLERANCE:g}"
+        )
+
 
 def _optional_image(value, height: int, width: int, channels: int, what: str, camera: str):
     """value as a float32 (height, width, channels) array, or None; a wrong shape is a DataError."""
@@ -56,6 +102,7 @@ class Camera:
                 f"camera {self.name!r}: viewmat must be 4x4 and K 3x3, got {self.viewmat.shape}, {self.K.shape}"
             )
         self.width, self.height = int(self.width), int(self.height)
+        _check_camera(self.name, self.viewmat, self.K, self.width, self.height)
         h, w = self.height, self.width
         self.image = _optional_image(self.image, h, w, 3, "image", self.name)
         self.alpha = _optional_image(self.alpha, h, w, 1, "alpha", self.name)

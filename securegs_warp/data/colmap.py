@@ -137,11 +137,23 @@ def read_points3d_binary(path: Path) -> tuple[np.ndarray, np.ndarray]:
     xyz, rgb = np.empty((count, 3)), np.empty((count, 3), dtype=np.uint8)
     for k in range(count):
         values = reader.unpack("Q3d3Bd", f"point record {k}")
+        _check_point(f"{path}: point {values[0]} (record {k})", values[1:4])
         xyz[k], rgb[k] = values[1:4], values[4:7]
         (track_length,) = reader.unpack("Q", f"the track length of point {values[0]}")
         reader.take(8 * track_length, f"the {track_length}-element track of point {values[0]}")
     reader.finish()
     return xyz, rgb
+
+
+def _check_point(where: str, xyz) -> None:
+    """A DataError at `where` when a point's coordinates are not all finite: one NaN point would
+    spread NaN through the anchors initialised from it."""
+    if not np.isfinite(xyz).all():
+        raise DataError(f"{where} has non-finite coordinates ({_numbers(xyz)}); expected finite x y z")
+
+
+def _numbers(values) -> str:
+    return ", ".join(f"{float(v):g}" for v in values)
 
 
 def _text_lines(path: Path) -> list[tuple[int, str]]:
@@ -205,6 +217,7 @@ def read_points3d_text(path: Path) -> tuple[np.ndarray, np.ndarray]:
         tokens = line.split()
         if tokens:
             values = _parse(path, no, tokens, (int, float, float, float, int, int, int, float), "point line")
+            _check_point(f"{path}:{no}: point {values[0]}", values[1:4])
             xyz.append(values[1:4])
             rgb.append(values[4:7])
     return np.array(xyz, dtype=np.float64).reshape(-1, 3), np.array(rgb, dtype=np.uint8).reshape(-1, 3)
@@ -246,19 +259,39 @@ def quaternion_to_rotation(q) -> np.ndarray:
 def _intrinsics(camera: ColmapCamera, source: Path) -> np.ndarray:
     """(3, 3) K of a supported camera at its own size; DataError naming the model otherwise."""
     p = camera.params
-    if camera.model == "PINHOLE":
-        fx, fy, cx, cy = p
-    elif camera.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL"):
-        fx = fy = p[0]
-        cx, cy = p[1], p[2]
-        if camera.model == "SIMPLE_RADIAL" and p[3] != 0.0:
-            warnings.warn(f"{source}: camera {camera.id} is SIMPLE_RADIAL with k={p[3]:g}; the distortion is ignored")
-    else:
+    if camera.model not in SUPPORTED_MODELS:
         raise DataError(
             f"{source}: camera {camera.id} uses the {camera.model} camera model; supported: "
             f"{', '.join(SUPPORTED_MODELS)} (undistort the images first, e.g. with `colmap image_undistorter`)"
         )
+    which = f"{source}: camera {camera.id} ({camera.model})"
+    if not np.isfinite(p).all():
+        raise DataError(f"{which} has non-finite parameters ({_numbers(p)}); expected finite numbers")
+    if camera.model == "PINHOLE":
+        fx, fy, cx, cy = p
+        focal = f"fx={fx:g}, fy={fy:g}"
+    else:
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+        focal = f"f={fx:g}"
+    if not (fx > 0 and fy > 0):
+        raise DataError(f"{which} has focal length {focal}; expected a positive focal length in pixels")
+    if camera.model == "SIMPLE_RADIAL" and p[3] != 0.0:
+        warnings.warn(f"{source}: camera {camera.id} is SIMPLE_RADIAL with k={p[3]:g}; the distortion is ignored")
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _check_pose(image: ColmapImage, source: Path) -> None:
+    """A DataError naming the image when its pose is not a rotation and translation: a zero or
+    non-finite quaternion has no rotation to normalise to."""
+    which = f"{source}: image {image.name!r} (id {image.id})"
+    q = np.asarray(image.qvec, dtype=np.float64)
+    if not np.isfinite(q).all() or np.linalg.norm(q) < 1e-6:
+        raise DataError(
+            f"{which} has rotation quaternion (w, x, y, z) = ({_numbers(q)}); expected a finite, non-zero quaternion"
+        )
+    if not np.isfinite(image.tvec).all():
+        raise DataError(f"{which} has translation ({_numbers(image.tvec)}); expected finite numbers")
 
 
 def _read_view(path: Path, camera: ColmapCamera, allowed: list[tuple[int, int]], size, source: str):
@@ -298,7 +331,8 @@ def load_colmap(
     holdout: every holdout-th image in name order (index % holdout == 0) is a test view; 0 keeps
     all for training.
     Raises DataError for a missing folder or file, an unsupported camera model, an image whose size
-    does not match its camera, or a malformed or truncated model file.
+    does not match its camera, a malformed or truncated model file, a model without 3-D points,
+    a non-finite point, a zero or non-finite pose, or non-finite or non-positive intrinsics.
     """
     root = Path(path)
     if not root.is_dir():
@@ -311,6 +345,11 @@ def load_colmap(
     cameras, colmap_images, xyz, rgb = read_model(sparse)
     if not colmap_images:
         raise DataError(f"{sparse}: the model has no registered images")
+    if len(xyz) == 0:
+        raise DataError(
+            f"{_model_file(sparse, 'points3D')}: the model has no 3-D points; training places its anchors on them, "
+            "so it needs at least one"
+        )
 
     image_dir, resized_dir = root / images, root / f"{images}_{int(downscale)}"
     presized = downscale != 1 and float(downscale).is_integer() and resized_dir.is_dir()
@@ -328,6 +367,7 @@ def load_colmap(
                 f"{sparse}: image {image.name!r} refers to camera {image.camera_id}, which is not in the model"
             )
         camera = cameras[image.camera_id]
+        _check_pose(image, _model_file(sparse, "images"))
         K = _intrinsics(camera, _model_file(sparse, "cameras"))
         target = (round(camera.width / downscale), round(camera.height / downscale))
         if presized:

@@ -15,6 +15,8 @@ The hidden payload is rendered from exactly the same cameras:
 """
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -280,6 +282,35 @@ def _hidden_payload(hidden, level: str, scene_name: str, layout: Layout, lightin
     return _Payload("object", level, name, placed, merge([layout.mesh, placed]), layout.sky, lighting)
 
 
+def _real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)) and math.isfinite(value)
+
+
+def _count(name: str, value, why: str = "") -> int:
+    """value as an int >= 1, or a DataError naming the argument and the valid range."""
+    if not (_real(value) and value == int(value) and value >= 1):
+        raise DataError(f"{name} must be an integer >= 1{why}, got {value!r}")
+    return int(value)
+
+
+def _check_arguments(width, height, n_train, n_test, n_points, supersample, fov_degrees, point_noise) -> tuple:
+    """The counts as ints; a DataError naming the first argument out of its range."""
+    counts = (
+        _count("width", width),
+        _count("height", height),
+        _count("n_train", n_train),
+        # Without a held-out view, metrics would quietly be measured on training views.
+        _count("n_test", n_test, " (metrics are measured on the held-out views)"),
+        _count("n_points", n_points, " (training places its anchors on the sparse points)"),
+        _count("supersample", supersample),
+    )
+    if not (_real(fov_degrees) and 0.0 < fov_degrees < 180.0):
+        raise DataError(f"fov_degrees must be a number of degrees in (0, 180), got {fov_degrees!r}")
+    if not (_real(point_noise) and point_noise >= 0.0):
+        raise DataError(f"point_noise must be a finite number >= 0, got {point_noise!r}")
+    return counts
+
+
 def make_synthetic_scene(
     name: str = "default",
     hidden: str | TriMesh | None = None,
@@ -314,9 +345,13 @@ def make_synthetic_scene(
     ring within the band. n_points noisy points (std point_noise) sampled from surfaces the
     training views see. supersample**2 rays per pixel. shadows: cast hard shadows. device: the Warp
     device to ray cast on (default wp.get_preferred_device()). Same arguments and seed, same arrays.
+    Raises DataError for an unknown name, payload or level, or a count below 1 (width, height,
+    n_train, n_test, n_points, supersample), fov_degrees outside (0, 180) or a negative point_noise.
     """
     if level not in ("object", "scene"):
         raise DataError(f"level must be 'object' or 'scene', not {level!r}")
+    width, height, n_train, n_test, n_points, supersample = _check_arguments(
+        width, height, n_train, n_test, n_points, supersample, fov_degrees, point_noise)
     scene_name, layout = _scene_layout(name, seed)
     rng = [np.random.default_rng((int(seed), stream)) for stream in range(3)]
     K = intrinsics_from_fov(fov_degrees, width, height)
