@@ -141,11 +141,9 @@ class SceneSpec:
     downscale: int = 1
 
     def __post_init__(self):
-        for name in ("width", "height", "n_train", "downscale"):
+        for name in ("width", "height", "n_train", "n_test", "downscale"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.n_test < 0:
-            raise ValueError(f"n_test must be >= 0, got {self.n_test}")
         if Path(self.source).is_dir() and not Path(self.source).is_absolute():
             object.__setattr__(self, "source", str(Path(self.source).resolve()))
 
