@@ -2,6 +2,8 @@
 
 import io
 import pickle
+import re
+import uuid
 import warnings
 import zipfile
 
@@ -446,3 +448,362 @@ def test_files_that_are_not_weights_are_refused(tmp_path):
     truncated.write_bytes(whole[: len(whole) - 200])
     with pytest.raises(MlpFileError, match="truncated.pt: "):
         load_weights(truncated)
+
+
+# ----------------------------------------------------------------------------------------------
+# A release is written as one unit
+# ----------------------------------------------------------------------------------------------
+
+
+def folder_bytes(path):
+    return {p.name: p.read_bytes() for p in path.iterdir()}
+
+
+def assert_same_release(path, model, heads):
+    loaded, loaded_heads = load_scaffold(path)
+    for name in ("xyz", "feat", "offsets", "scaling", "rotation", "opacity"):
+        assert torch.equal(getattr(loaded, name), getattr(model, name)), name
+    assert sorted(loaded_heads.state_dict()) == sorted(heads.state_dict())
+    for key, value in heads.state_dict().items():
+        assert torch.equal(loaded_heads.state_dict()[key], value), key
+
+
+class Crash(Exception):
+    """Stands for the process dying at that point."""
+
+
+# The old release has all five MLPs; the new one fewer and another size, so a mix of the two is
+# visible in the file list as well as in the content. Writes: 3 MLPs, then the PLY.
+CRASH_POINTS = [("mlp", 0, "before"), ("mlp", 1, "before"), ("mlp", 2, "after"),
+                ("ply", 0, "before"), ("ply", 0, "after"), ("publish", 0, "before")]
+
+
+@pytest.mark.parametrize("writer, index, when", CRASH_POINTS, ids=["-".join(map(str, p)) for p in CRASH_POINTS])
+def test_interrupted_save_leaves_the_old_release_byte_for_byte(tmp_path, monkeypatch, writer, index, when):
+    import securegs_warp.io.atomic as atomic
+    import securegs_warp.io.scaffold as scaffold
+
+    target = tmp_path / "release"
+    torch.manual_seed(4)
+    old_model = random_model(n=9, k=2, d=8, seed=1)
+    old_heads = ScaffoldHeads(8, 2, use_feat_bank=True, appearance_dim=3, num_cameras=2, add_cov_dist=True)
+    save_scaffold(target, old_model, old_heads)
+    before = folder_bytes(target)
+    new_model, new_heads = random_model(n=5, k=2, d=8, seed=2), ScaffoldHeads(8, 2)
+
+    calls = {"mlp": 0, "ply": 0, "publish": 0}
+
+    def crashing(name, real):
+        def write(*args, **kwargs):
+            calls[name] += 1
+            if calls[name] - 1 == index and when == "before":
+                raise Crash(f"{name} {index}")
+            real(*args, **kwargs)
+            if calls[name] - 1 == index and when == "after":
+                raise Crash(f"{name} {index}")
+        return write
+
+    if writer == "mlp":
+        monkeypatch.setattr(scaffold, "atomic_write", crashing("mlp", scaffold.atomic_write))
+    elif writer == "ply":
+        monkeypatch.setattr(scaffold, "write_vertex_ply", crashing("ply", scaffold.write_vertex_ply))
+    else:  # the swap of the complete new folder with the old one
+        monkeypatch.setattr(atomic, "_publish_folder", crashing("publish", atomic._publish_folder))
+    with pytest.raises(Crash):
+        save_scaffold(target, new_model, new_heads)
+    monkeypatch.undo()
+
+    assert folder_bytes(target) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["release"]  # no temporary file or folder
+    assert_same_release(target, old_model, old_heads)
+
+    save_scaffold(target, new_model, new_heads)
+    assert sorted(p.name for p in target.iterdir()) == ["color_mlp.pt", "cov_mlp.pt", "opacity_mlp.pt",
+                                                        "point_cloud.ply"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["release"]
+    assert_same_release(target, new_model, new_heads)
+
+
+def test_leftovers_are_ignored_by_loading_and_removed_by_the_next_save(tmp_path):
+    target = tmp_path / "release"
+    model, heads = random_model(n=4, k=2, d=4), ScaffoldHeads(4, 2)
+    save_scaffold(target, model, heads)
+    # What kill -9 can leave: a release under construction, an old one renamed aside, and inside an
+    # older folder (written file by file) a temporary file of an interrupted atomic_write.
+    for kind in ("tmp", "old"):
+        leftover = tmp_path / f".release.{kind}-{uuid.uuid4().hex}"
+        leftover.mkdir()
+        (leftover / "point_cloud.ply").write_bytes(b"garbage")
+    (target / f".cov_mlp.pt.{'a' * 32}.tmp").write_bytes(b"half")
+    assert_same_release(target, model, heads)
+
+    other = random_model(n=6, k=2, d=4, seed=5)
+    save_scaffold(target, other, heads)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["release"]
+    assert sorted(p.name for p in target.iterdir()) == ["color_mlp.pt", "cov_mlp.pt", "opacity_mlp.pt",
+                                                        "point_cloud.ply"]
+    assert_same_release(target, other, heads)
+
+
+def test_save_refuses_to_delete_what_is_not_a_release(tmp_path):
+    target = tmp_path / "release"
+    model, heads = random_model(n=4, k=2, d=4), ScaffoldHeads(4, 2)
+    save_scaffold(target, model, heads)
+    (target / "notes.txt").write_bytes(b"mine")
+    before = folder_bytes(target)
+    with pytest.raises(FileExistsError, match=r"release: holds 'notes.txt', which is not part of a Scaffold-GS"):
+        save_scaffold(target, random_model(n=3, k=2, d=4), heads)
+    assert folder_bytes(target) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["release"]
+
+
+def test_save_into_a_file_is_refused(tmp_path):
+    target = tmp_path / "release"
+    target.write_bytes(b"a file")
+    with pytest.raises(NotADirectoryError):
+        save_scaffold(target, random_model(n=4, k=2, d=4), ScaffoldHeads(4, 2))
+    assert target.read_bytes() == b"a file"
+
+
+# A release whose every file carries the number of the save that wrote it, and whose file list and
+# sizes change from save to save: a folder mixing two saves shows it in the numbers, the file list
+# or the shapes. Run both here and in the killed subprocess.
+NUMBERED_RELEASE = '''
+import torch
+from securegs_warp.model import AnchorModel, ScaffoldHeads
+
+def numbered_release(i):
+    n, appearance = 3 + i % 4, 2 if i % 3 == 0 else 0
+    heads = ScaffoldHeads(8, 2, use_feat_bank=i % 2 == 1, appearance_dim=appearance,
+                          num_cameras=1 + i % 5 if appearance else 0)
+    with torch.no_grad():
+        for module in (heads.opacity_mlp, heads.cov_mlp, heads.color_mlp, heads.feature_bank_mlp):
+            if module is not None:
+                module[0].bias.fill_(float(i))
+        if heads.embedding_appearance is not None:
+            heads.embedding_appearance.weight.fill_(float(i))
+    model = AnchorModel(xyz=torch.randn(n, 3), feat=torch.randn(n, 8), offsets=torch.randn(n, 2, 3),
+                        scaling=torch.randn(n, 6), rotation=torch.randn(n, 4),
+                        opacity=torch.full((n, 1), float(i)))
+    return model, heads
+'''
+
+SAVE_IN_A_LOOP = NUMBERED_RELEASE + '''
+import sys, time
+from securegs_warp.io import save_scaffold
+
+torch.set_num_threads(1)
+target, first = sys.argv[1], int(sys.argv[2])
+deadline = time.monotonic() + 30  # stops by itself if nobody kills it
+for i in range(first, first + 400):
+    if time.monotonic() > deadline:
+        break
+    save_scaffold(target, *numbered_release(i))
+    print(i, flush=True)
+'''
+
+
+def release_number(path):
+    """The number of the save that wrote the release at ``path``; fails unless every file agrees."""
+    model, heads = load_scaffold(path)
+    i = int(model.opacity[0, 0])
+    assert torch.equal(model.opacity, torch.full_like(model.opacity, float(i)))
+    assert model.num_anchors == 3 + i % 4
+    assert heads.use_feat_bank == (i % 2 == 1)
+    assert heads.appearance_dim == (2 if i % 3 == 0 else 0)
+    for module in (heads.opacity_mlp, heads.cov_mlp, heads.color_mlp, heads.feature_bank_mlp):
+        if module is not None:
+            assert torch.equal(module[0].bias, torch.full_like(module[0].bias, float(i)))
+    if heads.embedding_appearance is not None:
+        weight = heads.embedding_appearance.weight
+        assert weight.shape[0] == 1 + i % 5 and torch.equal(weight, torch.full_like(weight, float(i)))
+    return i
+
+
+def test_kill_9_while_saving_leaves_a_whole_release(tmp_path):
+    import os
+    import random
+    import select
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import securegs_warp.io.atomic as atomic
+
+    namespace = {}
+    exec(NUMBERED_RELEASE, namespace)
+    numbered_release = namespace["numbered_release"]
+    rng = random.Random(0)
+    targets = [tmp_path / f"release{j}" for j in range(3)]
+    for target in targets:
+        save_scaffold(target, *numbered_release(0))
+        assert release_number(target) == 0
+    # Several savers at once: one Python start-up (torch's import) for several kills.
+    savers = [subprocess.Popen([sys.executable, "-c", SAVE_IN_A_LOOP, str(target), "1"], stdout=subprocess.PIPE)
+              for target in targets]
+    try:
+        for saver in savers:
+            ready, _, _ = select.select([saver.stdout], [], [], 60)
+            assert ready and saver.stdout.readline().strip() == b"1", "the saver did not start saving"
+        for saver in savers:
+            # Anywhere in one of the next few saves: writing the MLPs, the PLY, publishing, cleaning.
+            time.sleep(rng.uniform(0.0, 0.3))
+            os.kill(saver.pid, signal.SIGKILL)
+        for target, saver in zip(targets, savers):
+            assert saver.wait(30) == -signal.SIGKILL
+            last_reported = int((b"1 " + saver.stdout.read()).split()[-1])
+            # Nothing lost, nothing mixed: the last save reported complete, or the one in flight.
+            assert release_number(target) in (last_reported, last_reported + 1)
+            assert len(atomic.folder_leftovers(target)) <= 1
+    finally:
+        for saver in savers:
+            if saver.poll() is None:
+                saver.kill()
+                saver.wait()
+    for target in targets:
+        save_scaffold(target, *numbered_release(7))
+        assert release_number(target) == 7 and atomic.folder_leftovers(target) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == [t.name for t in targets]
+
+
+# ----------------------------------------------------------------------------------------------
+# A damaged release is refused, naming the file and the problem
+# ----------------------------------------------------------------------------------------------
+
+
+def rewrite_ply(path, change):
+    """Rewrite point_cloud.ply with ``change(data)`` applied to its vertex records."""
+    vertex = plyfile.PlyData.read(str(path))["vertex"]
+    data = vertex.data.copy()
+    data = change(data)
+    plyfile.PlyData([plyfile.PlyElement.describe(data, "vertex")]).write(str(path))
+
+
+def test_release_without_anchors_is_refused(tmp_path):
+    save_scaffold(tmp_path, random_model(n=4, k=2, d=4), ScaffoldHeads(4, 2))
+    rewrite_ply(tmp_path / "point_cloud.ply", lambda data: data[:0])
+    with pytest.raises(PlyFormatError, match=r"point_cloud.ply: has no anchors"):
+        load_scaffold(tmp_path)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf], ids=["nan", "inf", "-inf"])
+@pytest.mark.parametrize("prop, group", [
+    ("x", "x/y/z"), ("z", "x/y/z"), ("f_offset_4", "f_offset_*"), ("f_anchor_feat_3", "f_anchor_feat_*"),
+    ("opacity", "opacity"), ("scale_5", "scale_*"), ("rot_0", "rot_*"),
+])
+def test_non_finite_anchor_attributes_are_refused(tmp_path, prop, group, value):
+    save_scaffold(tmp_path, random_model(n=6, k=2, d=4), ScaffoldHeads(4, 2))
+
+    def spoil(data):
+        data[prop][[1, 4]] = value
+        return data
+
+    rewrite_ply(tmp_path / "point_cloud.ply", spoil)
+    with pytest.raises(PlyFormatError, match=rf"point_cloud.ply: {re.escape(group)} holds NaN or inf in 2 of 6 "
+                                             r"anchors \(the first is anchor 1\)"):
+        load_scaffold(tmp_path)
+
+
+def test_normals_are_not_read(tmp_path):
+    # Scaffold-GS writes zeros there and never reads them; neither do we.
+    model = random_model(n=4, k=2, d=4)
+    save_scaffold(tmp_path, model, ScaffoldHeads(4, 2))
+
+    def spoil(data):
+        data["nx"][:] = np.nan
+        return data
+
+    rewrite_ply(tmp_path / "point_cloud.ply", spoil)
+    assert torch.equal(load_scaffold(tmp_path)[0].feat, model.feat)
+
+
+def test_float64_anchor_beyond_float32_is_refused(tmp_path):
+    model = random_model(n=3, k=2, d=4)
+    save_scaffold(tmp_path, model, ScaffoldHeads(4, 2))
+    vertex = plyfile.PlyData.read(str(tmp_path / "point_cloud.ply"))["vertex"]
+    data = np.empty(vertex.count, dtype=[(p.name, "f8") for p in vertex.properties])
+    for p in vertex.properties:
+        data[p.name] = vertex[p.name]
+    data["scale_2"][0] = 1e300  # finite in the file, inf as the float32 the model holds
+    plyfile.PlyData([plyfile.PlyElement.describe(data, "vertex")]).write(str(tmp_path / "point_cloud.ply"))
+    with pytest.raises(PlyFormatError, match=r"scale_\* holds NaN or inf in 1 of 3 anchors"):
+        load_scaffold(tmp_path)
+
+
+def test_inconsistent_point_cloud_is_refused(tmp_path):
+    save_scaffold(tmp_path, random_model(n=4, k=2, d=4), ScaffoldHeads(4, 2))
+    path = tmp_path / "point_cloud.ply"
+    good = path.read_bytes()
+
+    # f_offset_* that are not 3k
+    def drop_offset(data):
+        kept = [n for n in data.dtype.names if n != "f_offset_5"]
+        fewer = np.empty(len(data), dtype=[(n, "f4") for n in kept])
+        for n in kept:
+            fewer[n] = data[n]
+        return fewer
+
+    rewrite_ply(path, drop_offset)
+    with pytest.raises(PlyFormatError, match="has 5 f_offset_\\* properties; expected 3k"):
+        load_scaffold(tmp_path)
+
+    # a property that is a list per vertex instead of one number
+    vertex = plyfile.PlyData.read(io.BytesIO(good))["vertex"]
+    dtype = [(p.name, "f4") if p.name != "opacity" else ("opacity", "O") for p in vertex.properties]
+    data = np.empty(vertex.count, dtype=dtype)
+    for p in vertex.properties:
+        data[p.name] = vertex[p.name] if p.name != "opacity" else [np.zeros(2, "f4")] * vertex.count
+    plyfile.PlyData([plyfile.PlyElement.describe(data, "vertex", len_types={"opacity": "u1"},
+                                                 val_types={"opacity": "f4"})]).write(str(path))
+    with pytest.raises(PlyFormatError, match="vertex property 'opacity' is a list"):
+        load_scaffold(tmp_path)
+
+    # the body ends early, and bytes that are no PLY at all
+    path.write_bytes(good[:-10])
+    with pytest.raises(PlyFormatError, match="point_cloud.ply: not a readable PLY file"):
+        load_scaffold(tmp_path)
+    path.write_bytes(np.random.default_rng(0).bytes(300))
+    with pytest.raises(PlyFormatError, match="point_cloud.ply: not a readable PLY file"):
+        load_scaffold(tmp_path)
+
+
+@pytest.mark.parametrize("attribute, key", [
+    ("opacity_mlp", "0.weight"), ("cov_mlp", "2.bias"), ("color_mlp", "2.weight"),
+    ("feature_bank_mlp", "0.bias"), ("embedding_appearance", "weight"),
+])
+def test_non_finite_mlp_weights_are_refused(tmp_path, attribute, key):
+    heads = ScaffoldHeads(4, 2, use_feat_bank=True, appearance_dim=3, num_cameras=2)
+    save_scaffold(tmp_path, random_model(n=4, k=2, d=4), heads)
+    state = getattr(heads, attribute).state_dict()
+    state[key] = state[key].clone()
+    state[key].view(-1)[:3] = torch.tensor([float("nan"), float("inf"), 1.0])
+    torch.save(state, tmp_path / f"{attribute}.pt")
+    count = state[key].numel()
+    with pytest.raises(MlpFileError, match=rf"{attribute}.pt: '{re.escape(key)}' holds NaN or inf in 2 of {count}"):
+        load_scaffold(tmp_path)
+
+
+@pytest.mark.filterwarnings("ignore:`torch.jit")
+def test_non_finite_weights_in_a_torchscript_archive_are_refused(tmp_path):
+    heads = ScaffoldHeads(4, 2)
+    save_scaffold(tmp_path, random_model(n=4, k=2, d=4), heads)
+    with torch.no_grad():
+        heads.cov_mlp[0].weight[1, 1] = float("nan")
+    torch.jit.trace(heads.cov_mlp.eval(), torch.rand(1, 7)).save(str(tmp_path / "cov_mlp.pt"))
+    with pytest.raises(MlpFileError, match=r"cov_mlp.pt: '0.weight' holds NaN or inf in 1 of 28 values"):
+        load_scaffold(tmp_path)
+
+
+def test_mlps_that_do_not_fit_the_anchors_are_refused(tmp_path):
+    # A feature bank needs d divisible by 4; an embedding needs a camera.
+    save_scaffold(tmp_path, random_model(n=4, k=2, d=6), ScaffoldHeads(6, 2))
+    torch.save(ScaffoldHeads(8, 2, use_feat_bank=True).feature_bank_mlp.state_dict(),
+               tmp_path / "feature_bank_mlp.pt")
+    with pytest.raises(MlpFileError, match="feature_bank_mlp.pt: a feature bank splits the feature in 4, but the "
+                                           "anchors' feature dimension is 6"):
+        load_scaffold(tmp_path)
+    (tmp_path / "feature_bank_mlp.pt").unlink()
+    torch.save({"weight": torch.zeros(0, 3)}, tmp_path / "embedding_appearance.pt")
+    with pytest.raises(MlpFileError, match=r"embedding_appearance.pt: 'weight' has shape \[0, 3\]"):
+        load_scaffold(tmp_path)

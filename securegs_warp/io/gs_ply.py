@@ -66,7 +66,8 @@ def read_vertex_ply(path: str | os.PathLike) -> plyfile.PlyElement:
     """Read the ``vertex`` element of a PLY file, raising :class:`PlyFormatError` if there is none."""
     try:
         ply = plyfile.PlyData.read(os.fspath(path))
-    except plyfile.PlyParseError as e:
+    except (plyfile.PlyParseError, UnicodeDecodeError) as e:
+        # plyfile decodes the header as ASCII: a binary file that is no PLY fails with UnicodeDecodeError.
         raise PlyFormatError(path, f"not a readable PLY file ({e})") from e
     if "vertex" not in ply:
         raise PlyFormatError(path, "has no 'vertex' element")
@@ -76,13 +77,17 @@ def read_vertex_ply(path: str | os.PathLike) -> plyfile.PlyElement:
 def vertex_columns(path: str | os.PathLike, vertex: plyfile.PlyElement, names: Sequence[str]) -> np.ndarray:
     """Stack the named vertex properties into a float32 [N, len(names)] array.
 
-    Raises :class:`PlyFormatError` naming the first property that the file lacks.
+    Raises :class:`PlyFormatError` naming the first property that the file lacks or holds as a list.
     """
-    present = {p.name for p in vertex.properties}
+    present = {p.name: p for p in vertex.properties}
     for name in names:
         if name not in present:
             raise PlyFormatError(path, f"vertex property '{name}' is missing")
-    columns = [np.asarray(vertex[name], dtype=np.float32) for name in names]
+        if isinstance(present[name], plyfile.PlyListProperty):
+            raise PlyFormatError(path, f"vertex property '{name}' is a list; expected one number per vertex")
+    # A float64 value beyond float32's range becomes inf, which callers that need finite values check.
+    with np.errstate(over="ignore"):
+        columns = [np.asarray(vertex[name], dtype=np.float32) for name in names]
     return np.stack(columns, axis=1) if columns else np.zeros((vertex.count, 0), np.float32)
 
 

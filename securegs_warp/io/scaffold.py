@@ -33,6 +33,7 @@ from __future__ import annotations
 import copy
 import io
 import os
+import re
 import warnings
 import zipfile
 from pathlib import Path
@@ -42,7 +43,7 @@ from torch import nn
 
 from ..model.anchors import AnchorModel
 from ..model.heads import ScaffoldHeads
-from .atomic import atomic_write
+from .atomic import atomic_folder, atomic_write
 from .gs_ply import PlyFormatError, read_vertex_ply, vertex_columns, write_vertex_ply
 from .torchscript import TorchScriptError, archive_kind, read_torchscript_state_dict
 
@@ -97,26 +98,32 @@ def anchor_ply_properties(n_offsets: int, feat_dim: int) -> list[str]:
 
 
 def save_scaffold(directory: str | os.PathLike, model: AnchorModel, heads: ScaffoldHeads) -> None:
-    """Write ``point_cloud.ply`` and the heads' MLP files into ``directory`` (created if needed).
+    """Write ``point_cloud.ply`` and the heads' MLP files as the folder ``directory``, in one unit.
 
     The MLPs are TorchScript archives traced as Scaffold-GS's ``save_mlp_checkpoints`` traces them
     (see the module docstring), so Scaffold-GS's ``load_mlp_checkpoints`` opens them. ``heads`` is
     not modified: each module is traced from a CPU copy in eval mode.
 
-    Each file is written atomically; the MLPs go first, so an interrupted save never leaves a new
-    point cloud next to missing MLPs (it can leave new MLPs beside an older point cloud).
+    The folder holds exactly the release's files. It is built beside ``directory`` under a hidden
+    name and swapped in whole (:func:`.atomic.atomic_folder`): an interrupted save, a crash or
+    ``kill -9`` included, leaves the complete previous folder or the complete new one, never new
+    MLPs beside an old point cloud; at most a hidden ``.<name>.tmp-*`` / ``.<name>.old-*`` sibling
+    stays, which the next save of ``directory`` removes and loaders never read. The old folder is
+    replaced, not edited, so a folder that holds anything besides a release's files is refused
+    rather than emptied.
+
+    Raises:
+        FileExistsError: ``directory`` holds a file that is not part of a Scaffold-GS release
+            (named); nothing is written.
+        NotADirectoryError: ``directory`` is a file.
     """
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    for attribute, filename in MLP_FILES.items():
-        module = getattr(heads, attribute)
-        if module is None:
-            # A stale optional file from an earlier save would change what load_scaffold builds.
-            (directory / filename).unlink(missing_ok=True)
-            continue
-        archive = traced_mlp_bytes(module, _example_input(heads, attribute))
-        atomic_write(directory / filename, lambda f, archive=archive: f.write(archive))
-
+    _refuse_foreign_content(directory)
+    archives = {
+        filename: traced_mlp_bytes(getattr(heads, attribute), _example_input(heads, attribute))
+        for attribute, filename in MLP_FILES.items()
+        if getattr(heads, attribute) is not None
+    }
     n = model.num_anchors
     with torch.no_grad():
         values = torch.cat(
@@ -131,8 +138,33 @@ def save_scaffold(directory: str | os.PathLike, model: AnchorModel, heads: Scaff
             ],
             dim=1,
         )
-    write_vertex_ply(directory / POINT_CLOUD_FILE, anchor_ply_properties(model.n_offsets, model.feat_dim),
-                     values.detach().cpu().numpy())
+    values = values.detach().cpu().numpy()
+    with atomic_folder(directory) as folder:
+        for filename, archive in archives.items():
+            atomic_write(folder / filename, lambda f, archive=archive: f.write(archive))
+        write_vertex_ply(folder / POINT_CLOUD_FILE, anchor_ply_properties(model.n_offsets, model.feat_dim), values)
+
+
+# What a folder written by save_scaffold may hold: a release's files, Scaffold-GS's unite file and the
+# hidden temporary files of an interrupted atomic_write (from saves that wrote file by file).
+_RELEASE_NAMES = frozenset([POINT_CLOUD_FILE, UNITE_FILE, *MLP_FILES.values()])
+_STRAY_TEMP_FILE = re.compile(r"\.(.+)\.[0-9a-f]{32}\.tmp")
+
+
+def _refuse_foreign_content(directory: Path) -> None:
+    """Raise if replacing ``directory`` would delete something that is not part of a release."""
+    try:
+        names = sorted(os.listdir(directory))
+    except (FileNotFoundError, NotADirectoryError):
+        return
+    for name in names:
+        stray = _STRAY_TEMP_FILE.fullmatch(name)
+        if name in _RELEASE_NAMES or (stray and stray.group(1) in _RELEASE_NAMES):
+            continue
+        raise FileExistsError(
+            f"{directory}: holds {name!r}, which is not part of a Scaffold-GS release; saving replaces "
+            "the whole folder, so move it away or save elsewhere"
+        )
 
 
 def _example_input(heads: ScaffoldHeads, attribute: str) -> torch.Tensor:
@@ -185,9 +217,16 @@ def load_scaffold(
     when none of them exists but ``checkpoints.pth`` (Scaffold-GS's ``mode='unite'``) does, from
     that file.
 
+    A release is checked before it is used, so that a damaged one fails instead of decoding to
+    garbage: at least one anchor, every anchor attribute finite, counts and shapes that agree, every
+    MLP weight finite. Hidden siblings that an interrupted :func:`save_scaffold` may leave are not
+    read.
+
     Raises:
-        PlyFormatError: point_cloud.ply lacks a property (named) or has inconsistent counts.
-        MlpFileError: an MLP file is unsafe to load, unreadable, or its shapes do not fit.
+        PlyFormatError: point_cloud.ply is unreadable, has no anchors, lacks a property (named), has
+            inconsistent counts, or holds NaN or inf (naming the attribute group and how many anchors).
+        MlpFileError: an MLP file is unsafe to load, unreadable, its shapes do not fit the anchors,
+            or a weight is NaN or inf (naming the tensor).
         FileNotFoundError: a required file is missing.
     """
     directory = Path(directory)
@@ -201,6 +240,9 @@ def load_scaffold(
         path, state = weights["embedding_appearance"]
         weights["embedding_appearance"] = (path, _embedding_state(path, state))
         num_cameras, appearance_dim = weights["embedding_appearance"][1]["weight"].shape
+    if "feature_bank_mlp" in weights and d % 4 != 0:
+        raise MlpFileError(weights["feature_bank_mlp"][0], f"a feature bank splits the feature in 4, but the "
+                                                           f"anchors' feature dimension is {d}")
     heads = ScaffoldHeads(
         d, k,
         use_feat_bank="feature_bank_mlp" in weights,
@@ -250,6 +292,8 @@ def _load_unite(path: Path, device: torch.device | str) -> dict[str, tuple[str, 
 
 def _load_anchors(path: Path, voxel_size: float | None) -> AnchorModel:
     vertex = read_vertex_ply(path)
+    if vertex.count == 0:
+        raise PlyFormatError(path, "has no anchors (its vertex element is empty)")
     names = {p.name for p in vertex.properties}
     n_offset_values = _count_indexed(path, names, "f_offset_")
     feat_dim = _count_indexed(path, names, "f_anchor_feat_")
@@ -259,16 +303,27 @@ def _load_anchors(path: Path, voxel_size: float | None) -> AnchorModel:
         raise PlyFormatError(path, "has no f_anchor_feat_* properties")
     k = n_offset_values // 3
     values = torch.from_numpy(vertex_columns(path, vertex, anchor_ply_properties(k, feat_dim)))
-    xyz, _normals, offsets, feat, opacity, scaling, rotation = values.split([3, 3, 3 * k, feat_dim, 1, 6, 4], dim=1)
+    groups = dict(zip(_ANCHOR_GROUPS, values.split([3, 3, 3 * k, feat_dim, 1, 6, 4], dim=1)))
+    for group, columns in groups.items():
+        if group == "nx/ny/nz":
+            continue  # written as zeros and never read, by Scaffold-GS as here
+        bad = ~torch.isfinite(columns).all(dim=1)
+        if bad.any():
+            raise PlyFormatError(path, f"{group} holds NaN or inf in {int(bad.sum())} of {len(bad)} anchors "
+                                       f"(the first is anchor {int(bad.nonzero()[0])})")
     return AnchorModel(
-        xyz=xyz,
-        feat=feat,
-        offsets=offsets.reshape(-1, 3, k).transpose(1, 2),
-        scaling=scaling,
-        rotation=rotation,
-        opacity=opacity,
+        xyz=groups["x/y/z"],
+        feat=groups["f_anchor_feat_*"],
+        offsets=groups["f_offset_*"].reshape(-1, 3, k).transpose(1, 2),
+        scaling=groups["scale_*"],
+        rotation=groups["rot_*"],
+        opacity=groups["opacity"],
         voxel_size=voxel_size,
     )
+
+
+# The property groups of point_cloud.ply, in file order, as errors name them.
+_ANCHOR_GROUPS = ("x/y/z", "nx/ny/nz", "f_offset_*", "f_anchor_feat_*", "opacity", "scale_*", "rot_*")
 
 
 def _count_indexed(path: Path, names: set[str], prefix: str) -> int:
@@ -284,6 +339,9 @@ def _embedding_state(path: str | Path, state: dict[str, torch.Tensor]) -> dict[s
     """Our embedding file holds ``weight``; Scaffold-GS's wraps nn.Embedding as ``embedding.weight``."""
     for key in ("weight", "embedding.weight"):
         if key in state and state[key].ndim == 2:
+            if 0 in state[key].shape:
+                raise MlpFileError(path, f"'{key}' has shape {list(state[key].shape)}; an appearance embedding "
+                                         "needs at least one camera and one channel")
             return {"weight": state[key]}
     raise MlpFileError(path, f"no 2-D 'weight' or 'embedding.weight' tensor among {sorted(state)}")
 
@@ -310,6 +368,12 @@ def _load_into(module: nn.Module, state: dict[str, torch.Tensor], path: str | Pa
         if state[key].shape != tensor.shape:
             raise MlpFileError(path, f"'{key}' has shape {list(state[key].shape)}, expected {list(tensor.shape)} "
                                      f"for feature dimension {d} and {k} offsets per anchor")
+        # Cast first: a float64 weight beyond float32's range would load as inf.
+        value = state[key].to(tensor.dtype)
+        if value.is_floating_point():
+            bad = int((~torch.isfinite(value)).sum())
+            if bad:
+                raise MlpFileError(path, f"'{key}' holds NaN or inf in {bad} of {value.numel()} values")
     module.load_state_dict({key: state[key] for key in expected})
 
 
