@@ -161,7 +161,7 @@ def _drop(index, key):
 
 
 FRAME = r"transforms_train\.json: frame 1"
-POSE = rf"{FRAME}: 'transform_matrix' must be a rigid camera-to-world transform"
+POSE = rf"{FRAME}: transform_matrix's 3x3 block is not a rotation .*\(a rigid camera-to-world pose\)"
 ANGLE = r"transforms_train\.json: 'camera_angle_x' must be .*a number of radians in \(0, π\)"
 
 
@@ -191,14 +191,14 @@ ANGLE = r"transforms_train\.json: 'camera_angle_x' must be .*a number of radians
     pytest.param(_set_frame(1, "transform_matrix", [[True, 0, 0, 0]] + np.eye(4)[1:].tolist()),
                  rf"{FRAME}: 'transform_matrix' must be a 4x4 list of numbers", id="matrix-bool"),
     pytest.param(_set_pose(1, lambda m: m * np.where(np.arange(16).reshape(4, 4) == 5, np.nan, 1.0)),
-                 rf"{FRAME}: 'transform_matrix' has non-finite entries; expected finite numbers", id="nan"),
+                 rf"{FRAME}: transform_matrix has non-finite entries \[.*nan.*\]; expected finite numbers", id="nan"),
     pytest.param(_set_pose(1, lambda m: np.where(np.arange(16).reshape(4, 4) < 12, 0.0, m)), POSE, id="singular"),
     pytest.param(_set_pose(1, lambda m: m @ np.diag([2.0, 2.0, 2.0, 1.0])), POSE, id="scaled"),
     pytest.param(_set_pose(1, lambda m: m @ np.diag([-1.0, 1.0, 1.0, 1.0])), POSE, id="reflection"),
     pytest.param(_set_pose(1, lambda m: m + np.triu(np.ones((4, 4)), 1) * 0.1 * (np.arange(4) < 3)[:, None]), POSE,
                  id="sheared"),
     pytest.param(_set_pose(1, lambda m: np.vstack([m[:3], [0.0, 0.0, 1.0, 1.0]])),
-                 rf"{FRAME}: 'transform_matrix' must have bottom row \[0, 0, 0, 1\]", id="bottom-row"),
+                 rf"{FRAME}: transform_matrix bottom row is \[0, 0, 1, 1\]; expected \[0, 0, 0, 1\]", id="bottom-row"),
     pytest.param(_drop(1, "file_path"), rf"{FRAME} needs .*; it has no 'file_path' \(expected the image path",
                  id="no-file-path"),
     pytest.param(_set_frame(1, "file_path", 7), rf"{FRAME}: 'file_path' is a number; expected a string",

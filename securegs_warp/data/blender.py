@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import ROTATION_TOLERANCE, Camera, SceneData, composite, read_image, resize_image, rotation_problem
+from .cameras import Camera, SceneData, composite, read_image, resize_image, rigid_transform_problem
 from .errors import DataError
 
 # OpenGL camera axes (y up, z backward) to OpenCV (y down, z forward): negate y and z.
@@ -74,16 +74,9 @@ def _frame_pose(where: str, value) -> np.ndarray:
     if not rows_ok:
         raise DataError(f"{where}: 'transform_matrix' must be a 4x4 list of numbers (4 rows of 4), got {_brief(value)}")
     c2w = np.array(value, dtype=np.float64)
-    if not np.isfinite(c2w).all():
-        raise DataError(f"{where}: 'transform_matrix' has non-finite entries; expected finite numbers")
-    if not np.allclose(c2w[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=ROTATION_TOLERANCE):
-        raise DataError(f"{where}: 'transform_matrix' must have bottom row [0, 0, 0, 1], got {c2w[3].tolist()}")
-    problem = rotation_problem(c2w[:3, :3])
+    problem = rigid_transform_problem(c2w, "transform_matrix")
     if problem is not None:
-        raise DataError(
-            f"{where}: 'transform_matrix' must be a rigid camera-to-world transform (its 3x3 block a rotation: "
-            f"orthonormal, determinant 1, within {ROTATION_TOLERANCE:g}), but {problem}"
-        )
+        raise DataError(f"{where}: {problem} (a rigid camera-to-world pose)")
     return c2w
 
 

@@ -42,23 +42,29 @@ def _check_camera(name: str, viewmat: np.ndarray, K: np.ndarray, width: int, hei
     intrinsics cannot project (projection divides by the depth and scales by fx, fy)."""
     if width < 1 or height < 1:
         raise DataError(f"camera {name!r}: size {width}x{height}; expected at least 1x1 pixels")
-    for what, matrix in (("viewmat", viewmat), ("K", K)):
-        if not np.isfinite(matrix).all():
-            raise DataError(
-                f"camera {name!r}: {what} has non-finite entries {_numbers(matrix)}; expected finite numbers"
-            )
+    if not np.isfinite(K).all():
+        raise DataError(f"camera {name!r}: K has non-finite entries {_numbers(K)}; expected finite numbers")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise DataError(
             f"camera {name!r}: K has fx={K[0, 0]:g}, fy={K[1, 1]:g}; expected positive focal lengths in pixels"
         )
-    if not np.allclose(viewmat[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=ROTATION_TOLERANCE):
-        raise DataError(f"camera {name!r}: viewmat bottom row is {_numbers(viewmat[3])}; expected [0, 0, 0, 1]")
-    problem = rotation_problem(viewmat[:3, :3])
+    problem = rigid_transform_problem(viewmat, "viewmat")
     if problem is not None:
-        raise DataError(
-            f"camera {name!r}: viewmat's 3x3 block is not a rotation ({problem}); expected an orthonormal matrix "
-            f"with determinant 1 within {ROTATION_TOLERANCE:g}"
-        )
+        raise DataError(f"camera {name!r}: {problem}")
+
+
+def rigid_transform_problem(matrix: np.ndarray, what: str) -> str | None:
+    """Why the (4, 4) ``matrix`` (called ``what`` in the sentence) is not a rigid transform: finite,
+    bottom row [0, 0, 0, 1], a rotation block within ROTATION_TOLERANCE. None when it is one."""
+    if not np.isfinite(matrix).all():
+        return f"{what} has non-finite entries {_numbers(matrix)}; expected finite numbers"
+    if not np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=ROTATION_TOLERANCE):
+        return f"{what} bottom row is {_numbers(matrix[3])}; expected [0, 0, 0, 1]"
+    problem = rotation_problem(matrix[:3, :3])
+    if problem is not None:
+        return (f"{what}'s 3x3 block is not a rotation ({problem}); expected an orthonormal matrix with "
+                f"determinant 1 within {ROTATION_TOLERANCE:g}")
+    return None
 
 
 def _optional_image(value, height: int, width: int, channels: int, what: str, camera: str):
