@@ -261,3 +261,17 @@ def test_interrupted_run_resumes_to_the_same_model(tmp_path, sig):
         a = (tmp_path / "straight" / "model" / name).read_bytes()
         b = (tmp_path / "stopped" / "model" / name).read_bytes()
         assert a == b, name
+
+
+def test_cpu_training_takes_half_the_cores(tmp_path):
+    """Two CPU runs at once must not oversubscribe the machine: each command gives torch half the
+    cores it may run on (one on a 2-core machine)."""
+    from securegs_warp.cli.common import cpu_threads, resolve_device
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    before = torch.get_num_threads()
+    try:
+        resolve_device("cpu")
+        assert torch.get_num_threads() == cpu_threads() == max(1, cores // 2)
+    finally:
+        torch.set_num_threads(before)

@@ -33,7 +33,8 @@ def cpu_threads() -> int:
     """Torch's thread count for CPU training: half the cores (at least one). The MLPs are small and
     Warp's CPU kernels run on one thread, so more threads gain little alone, while two runs that each
     take every core oversubscribe the machine and slow each other down many times over."""
-    return max(1, (os.cpu_count() or 2) // 2)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 2)
+    return max(1, cores // 2)
 
 
 def _device(name: str | None) -> torch.device:
