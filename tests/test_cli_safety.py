@@ -132,14 +132,14 @@ def test_reveal_out_refuses_used_folders(tmp_path, capsys):
 
 
 def test_disk_full_is_one_line_and_loses_nothing(tmp_path, monkeypatch, capsys):
-    out = tmp_path / "run"
-    args = ["train", "--out", str(out), "--iterations", "2", "--quiet", *TINY]
-    assert main(args) == 0
-    before = (out / "metrics.json").read_bytes()
+    """The disk fills up as the finished run writes its metrics: one line, the checkpoint of the
+    last step is intact, and once there is room again --resume finishes the run without training."""
     import errno
 
     import securegs_warp.io.atomic as atomic
 
+    out = tmp_path / "run"
+    args = ["train", "--out", str(out), "--iterations", "3", "--quiet", *TINY]
     real = atomic.atomic_open
 
     def full(path):
@@ -148,8 +148,13 @@ def test_disk_full_is_one_line_and_loses_nothing(tmp_path, monkeypatch, capsys):
         return real(path)
 
     monkeypatch.setattr(atomic, "atomic_open", full)
-    assert main(args + ["--force"]) == 2
+    assert main(args) == 2
     assert "No space left on device" in _error(capsys)
+    assert not (out / "metrics.json").exists() and not list(out.glob(".*.tmp"))
+    monkeypatch.setattr(atomic, "atomic_open", real)
+    assert main(args + ["--resume"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["psnr"] > 0
+    assert json.loads((out / "log.jsonl").read_text().splitlines()[-1])["step"] == 3  # no step trained twice
 
 
 # --- bad input -----------------------------------------------------------------------------------

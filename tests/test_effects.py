@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from securegs_warp.data import Camera, SceneData
+from securegs_warp.data import Camera
 from securegs_warp.config import HeadsConfig, SecureConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.model import AnchorModel, ScaffoldHeads

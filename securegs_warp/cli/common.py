@@ -129,9 +129,7 @@ def config_from_args(args, base: RunConfig, defaults: dict | None = None, device
     given = {name: value for name, value in vars(args).items() if "." in name and value is not None}
     config = apply_overrides(base, {**(defaults or {}), **given})
     if "train.raster.tile_size" not in given and device is not None:
-        raster = RasterOptions.for_device(device, **{k: v for k, v in to_dict(config.train.raster).items()
-                                                     if k != "tile_size"})
-        config = dataclasses.replace(config, train=dataclasses.replace(config.train, raster=raster))
+        config = apply_overrides(config, {"train.raster.tile_size": RasterOptions.for_device(device).tile_size})
     return config
 
 

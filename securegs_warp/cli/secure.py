@@ -13,14 +13,14 @@ import torch
 from ..config import RunConfig, SecureConfig, to_dict
 from ..data import Camera
 from ..io import export_3dgs_ply
-from ..runs import RunFolder, folder_size_mb, png_name, save_png
+from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
 from ..secure.container import open_container, save_container
 from ..secure.payload import PayloadSpec
 from ..secure.security import exposure
 from . import common
 from .common import CommandError
-from .train import background_of, evaluate_model
+from .train import evaluate_model
 
 HIDE_DEFAULTS = {"train.iterations": 400}
 SECURE_FLAGS = (
