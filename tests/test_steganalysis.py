@@ -12,7 +12,7 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure import SecureTrainer
 from securegs_warp.secure.container import open_container
-from securegs_warp.secure.steganalysis import audit, detection_auc, sliced_wasserstein
+from securegs_warp.secure.steganalysis import audit, detection_auc, leakage, sliced_wasserstein
 from securegs_warp.train import TrainConfig
 
 TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
@@ -98,9 +98,22 @@ def test_audit_command_prints_one_json_object(tmp_path, capsys):
     assert main(["audit", str(out / "public"), "--reference", str(out / "public"), "--key",
                  str(out / "key.safetensors"), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert {"score", "suspicious_box", "coverage", "density_ratio", "attribute_distances"} <= set(report)
-    assert report["density_ratio"] == pytest.approx(1.0)  # the release against itself
-    assert max(report["attribute_distances"].values()) < 1e-6
+    assert {"score", "suspicious_box", "anchors", "attribute_distances"} <= set(report)
+    assert set(report["attribute_distances"]) == {"features", "offsets", "scales", "opacities"}
+    assert max(report["attribute_distances"].values()) < 1e-6  # the release against itself
+
+
+def test_leakage_counts_anchors_on_the_hidden_surface():
+    rng = np.random.default_rng(3)
+    sphere = rng.normal(size=(2000, 3))
+    sphere = 5.0 + sphere / np.linalg.norm(sphere, axis=1, keepdims=True)  # the hidden surface, radius 1
+    walls = _room_like(rng)
+    reference = np.concatenate([walls, sphere[::100]])  # a plain model has a few anchors there by chance
+    traced = np.concatenate([reference, sphere[1:1000:2] * 1.01 - 0.05])  # anchors grown on the surface
+    leak = leakage(traced, sphere, reference)
+    assert leak["coverage"] > 0.5 > leak["reference_coverage"] and leak["density_ratio"] > 10
+    assert leakage(reference, sphere, reference)["density_ratio"] == pytest.approx(1.0)
+    assert leakage(walls, sphere, walls)["density_ratio"] is None  # no reference anchor near it
 
 
 @pytest.mark.parametrize("placement", ["stand", "sink", "float"])

@@ -28,6 +28,7 @@ def cmd_audit(args) -> int:
         if len(points):
             report.update(steganalysis.leakage(release["xyz"], points, None if ref is None else ref["xyz"]))
     if args.json:
+        args.quiet = True  # stdout is the one JSON object: no "done in" line after it
         print(json.dumps(report))
         return 0
     print(f"anchors: {report['anchors']}")

@@ -202,35 +202,20 @@ def hidden_surface(model, cameras, samples: int = 4096, min_opacity: float = 0.5
 
 def leakage(xyz: np.ndarray, hidden_points: np.ndarray, reference_xyz: np.ndarray | None,
             radius_fraction: float = 0.03) -> dict:
-    """``exposure`` of anchors [N, 3] around the hidden surface [M, 3], r = ``radius_fraction`` of
-    its bounding-box diagonal. The hidden-only surface is the part farther than r from the
-    reference's anchors [P, 3] (a plain model of the scene), and ``density_ratio`` is the release's
-    anchors within r of it over the reference's; without a reference the whole hidden surface counts
-    and there is no ratio."""
+    """``exposure`` of anchors [N, 3] around the whole hidden surface [M, 3] (the file holds no
+    scene points to tell its hidden-only part; where the object overlaps the scene, both models
+    have anchors there and the ratio leans toward 1), r = ``radius_fraction`` of its bounding-box
+    diagonal. With a reference's anchors [P, 3] (a plain model of the scene), ``density_ratio`` is
+    the release's anchors within r of the surface over the reference's (None when it has none)."""
     from .security import exposure
 
     radius = radius_fraction * float(np.linalg.norm(np.ptp(hidden_points, axis=0)))
-    scene = reference_xyz if reference_xyz is not None else np.full((1, 3), np.inf)
-    exposed = exposure(xyz, hidden_points, scene, radius)
-    out = {"coverage": exposed["coverage"], "surface_density": exposed["surface_density"], "radius": radius,
-           "surface_samples": exposed["surface_samples"]}
+    nowhere = hidden_points.max(axis=0, keepdims=True) + 1e6  # no scene point near: every sample counts
+    exposed = exposure(xyz, hidden_points, nowhere, radius)
+    out = {"coverage": exposed["coverage"], "surface_density": exposed["surface_density"], "radius": radius}
     if reference_xyz is not None:
-        base = exposure(reference_xyz, hidden_points, scene, radius)
+        base = exposure(reference_xyz, hidden_points, nowhere, radius)
         out["reference_coverage"] = base["coverage"]
         out["density_ratio"] = (exposed["surface_density"] / base["surface_density"]
                                 if base["surface_density"] > 0 else None)
     return out
-
-
-def auc_by_model(runs: list[dict[str, np.ndarray]], plain: str) -> dict:
-    """Detection AUC of the reference-free audit for each kind of model in ``runs`` (one dict per
-    run: model label -> anchor positions [N, 3]; ``plain`` labels the plain Scaffold-GS models).
-    Returns {label: {"auc", "scores"}}, plain's scores under ``plain``."""
-    scores: dict[str, list[float]] = {}
-    for run in runs:
-        for label, xyz in run.items():
-            scores.setdefault(label, []).append(audit({"xyz": xyz})["score"])
-    if plain not in scores:
-        raise ValueError(f"no plain model labelled {plain!r} among {sorted(scores)}")
-    return {label: {"scores": s, **({} if label == plain else {"auc": detection_auc(s, scores[plain])})}
-            for label, s in scores.items()}
