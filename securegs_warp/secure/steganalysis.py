@@ -219,3 +219,24 @@ def leakage(xyz: np.ndarray, hidden_points: np.ndarray, reference_xyz: np.ndarra
         out["density_ratio"] = (exposed["surface_density"] / base["surface_density"]
                                 if base["surface_density"] > 0 else None)
     return out
+
+
+def auc_by_model(runs: list[dict[str, np.ndarray]], plain: str, with_reference: bool = False) -> dict:
+    """Detection AUC of the audit's score for each kind of model in ``runs`` (one dict per run of
+    one scene: model label -> anchor positions [N, 3]; ``plain`` labels the plain Scaffold-GS
+    models). ``with_reference``: every model of run i is audited against the plain model of every
+    other run j (the attacker's reference is a plain model trained apart, never the one of the same
+    run); otherwise without a reference. Returns {label: {"auc", "scores"}}, plain's scores under
+    ``plain``."""
+    if any(plain not in run for run in runs):
+        raise ValueError(f"every run needs a plain model labelled {plain!r}")
+    if with_reference and len(runs) < 2:
+        raise ValueError("auditing against a reference needs at least two runs")
+    scores: dict[str, list[float]] = {}
+    for i, run in enumerate(runs):
+        references = [other[plain] for j, other in enumerate(runs) if j != i] if with_reference else [None]
+        for label, xyz in run.items():
+            scores.setdefault(label, []).extend(
+                float(region_scores(xyz, ref)["score"].max(initial=0.0)) for ref in references)
+    return {label: {"scores": s, **({} if label == plain else {"auc": detection_auc(s, scores[plain])})}
+            for label, s in scores.items()}
