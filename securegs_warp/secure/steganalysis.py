@@ -10,9 +10,6 @@ against all the other regions:
   log count: median and MAD).
 - ``nn_z``: the cell's anchors' nearest-neighbour distances against the rest of the cloud's
   (Mann–Whitney U, as a z-score; positive when the cell is tighter).
-
-With the key as well, :func:`leakage` measures what the tests try to find: how many anchors lie on
-the hidden object's surface, estimated from the hidden Gaussians the key decodes.
 - ``isolation``: the fraction of the cell's 26 neighbours that hold no anchor (a cluster in empty
   space: near 1; a patch of a wall or floor that continues: lower).
 
@@ -20,8 +17,10 @@ A cell's score is ``(max(density_z, 0) + max(nn_z, 0)) · (0.5 + isolation)`` (s
 :func:`region_scores`); the release's score is the highest cell's, and the suspicious box is that
 cell grown over its suspicious neighbours. With a reference (a plain Scaffold-GS model of the same
 scene) the density test is the release's count against the reference's in the same cell (a Poisson
-z-score), and the per-attribute distributions are compared (sliced Wasserstein distances). All
-inputs are numpy arrays; nothing here trains or renders.
+z-score), and the per-attribute distributions are compared (sliced Wasserstein distances). With
+the key as well, :func:`leakage` measures what the tests try to find: how many anchors lie on the
+hidden object's surface, estimated from the hidden Gaussians the key decodes. The tests take numpy
+arrays (``release_arrays`` and ``hidden_surface`` make them from a model); nothing here trains.
 """
 from __future__ import annotations
 
@@ -143,10 +142,10 @@ def attribute_distances(release: dict, reference: dict) -> dict:
 
 def audit(release: dict, reference: dict | None = None) -> dict:
     """The whole audit of one release (``release_arrays`` of it; ``reference``: a plain model's, or
-    None). Returns ``score`` (the most suspicious region's; higher is more suspicious),
+    None). Returns ``score`` (the most suspicious region's; higher is more suspicious; with a
+    reference, its density test is against the reference's count in each cell),
     ``suspicious_box`` (``[min xyz, max xyz]`` or None), ``anchors``, the best region's tests
-    (``region``) and, with a reference, ``attribute_distances`` and ``score`` computed on the
-    reference's grid."""
+    (``region``) and, with a reference, ``attribute_distances``."""
     xyz = release["xyz"]
     regions = region_scores(xyz, None if reference is None else reference["xyz"])
     out = {"anchors": int(len(xyz)), "score": float(regions["score"].max()) if len(regions["score"]) else 0.0,
