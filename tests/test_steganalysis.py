@@ -12,7 +12,7 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure import SecureTrainer
 from securegs_warp.secure.container import open_container
-from securegs_warp.secure.steganalysis import audit, detection_auc, leakage, sliced_wasserstein
+from securegs_warp.secure.steganalysis import audit, auc_by_model, detection_auc, leakage, sliced_wasserstein
 from securegs_warp.train import TrainConfig
 
 TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
@@ -45,6 +45,21 @@ def test_a_uniform_cloud_scores_low_and_auc_is_chance_between_alike_models():
     assert max(scores) < min(planted)
     assert detection_auc(planted, scores) == 1.0
     assert 0.2 <= detection_auc(scores[:3], scores[3:]) <= 0.8
+
+
+def test_auc_over_runs_with_and_without_a_reference():
+    rng = np.random.default_rng(4)
+    runs = []
+    for _ in range(3):
+        walls = _room_like(rng, 3000)
+        runs.append({"plain": walls, "alike": _room_like(rng, 3000),
+                     "traced": np.concatenate([walls, rng.normal((6.0, 4.0, 5.0), 0.2, (300, 3))])})
+    for with_reference in (False, True):
+        result = auc_by_model(runs, "plain", with_reference)
+        assert result["traced"]["auc"] == 1.0 and "auc" not in result["plain"]
+        assert len(result["traced"]["scores"]) == (6 if with_reference else 3)
+    with pytest.raises(ValueError, match="plain model"):
+        auc_by_model([{"traced": runs[0]["traced"]}], "plain")
 
 
 def test_sliced_wasserstein_tells_a_shifted_distribution():
