@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from securegs_warp.cli.common import quiet_warp
-from securegs_warp.compare import markdown_row, parse_variant, public_row, train, write_report
+from securegs_warp.compare import BASELINE, markdown_row, parse_variant, public_row, train, write_report
 from securegs_warp.config import SecureConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.evaluation import render_fps
@@ -43,10 +43,13 @@ def main():
     ap.add_argument("--test-views", type=int, default=8)
     ap.add_argument("--iterations", type=int, default=600)
     ap.add_argument("--hide", default="mug")
+    ap.add_argument("--placement", default="stand", help="stand (mostly in empty space), sink (half inside the "
+                                                         "host object) or float")
     ap.add_argument("--payload", default="object+bits:48")
     ap.add_argument("--modes", default="rdo,scaffold",
-                    help="SecureGS variants MODE[:FIELD=VALUE]...: density modes rdo, scaffold (w/o RDO), global, "
-                         "shared; FIELD any SecureConfig field (hidden_weight, hidden_feature_grad, hdger, r_down, ...)")
+                    help="SecureGS variants MODE[:FIELD=VALUE]...: density modes rdo, cover, scaffold (w/o RDO), "
+                         "global, shared; FIELD any SecureConfig field (hidden_weight, hidden_feature_grad, hdger, "
+                         "r_down, hidden_anchors, ...); empty: the baseline alone")
     ap.add_argument("--no-baseline", action="store_true",
                     help="train only the SecureGS variants (e.g. when the baseline of the same scene and budget "
                          "is already measured)")
@@ -59,24 +62,26 @@ def main():
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene = make_synthetic_scene(hidden=args.hide, level="object", width=args.width, height=args.height,
-                                 n_train=args.train_views, n_test=args.test_views, device=args.device)
+                                 n_train=args.train_views, n_test=args.test_views, device=args.device,
+                                 hidden_placement=args.placement)
     config = TrainConfig(iterations=args.iterations, seed=args.seed, raster=RasterOptions.for_device(args.device))
     radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0)))
     rows, clouds = {}, {}
     device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
     meta = {"device": device, "date": time.strftime("%Y-%m-%d"), "width": args.width, "height": args.height,
             "iterations": args.iterations, "seed": args.seed, "hidden": args.hide, "payload": args.payload,
+            "placement": args.placement,
             "exposure_radius": radius}
 
     # A bad variant fails before any training.
-    variants = [parse_variant(v, SecureConfig(payload=args.payload)) for v in args.modes.split(",")]
+    variants = [parse_variant(v, SecureConfig(payload=args.payload)) for v in args.modes.split(",") if v]
 
     base = None
     if not args.no_baseline:
         base = ScaffoldTrainer(scene, config, device=args.device)
-        rows["Scaffold-GS baseline"] = public_row(base, train(base, "baseline"), scene, radius)
-        clouds["Scaffold-GS baseline"] = base.model.anchors.xyz.detach().cpu().numpy()
-        print(markdown_row("Scaffold-GS baseline", rows["Scaffold-GS baseline"]), flush=True)
+        rows[BASELINE] = public_row(base, train(base, "baseline"), scene, radius)
+        clouds[BASELINE] = base.model.anchors.xyz.detach().cpu().numpy()
+        print(markdown_row(BASELINE, rows[BASELINE]), flush=True)
         write_report(out, meta, rows)
 
     for label, secure in variants:
@@ -96,9 +101,12 @@ def main():
                        "bit_accuracy_on_baseline": sec.bit_accuracy(base.model.anchors.feat) if base is not None else None,
                        "hidden_anchors": int(sec.strategy_state["is_hidden"].sum())}
         clouds[label] = sec.model.anchors.xyz.detach().cpu().numpy()
-        print(markdown_row(label, rows[label]), flush=True)
+        print(markdown_row(label, rows[label], rows.get(BASELINE)), flush=True)
         write_report(out, meta, rows)
 
+    # The anchors themselves, so that runs of one scene made apart can be drawn and audited together.
+    np.savez_compressed(out / "anchor_clouds.npz", hidden_points=scene.hidden_points, scene_points=scene.points,
+                        **{label: xyz for label, xyz in clouds.items()})
     plot_anchor_clouds(out / "anchor_clouds.png", clouds, scene.hidden_points)
     print(write_report(out, meta, rows))
 

@@ -24,6 +24,7 @@ from .io.atomic import atomic_write
 from .secure.security import exposure
 from .strategies import MODES
 
+BASELINE = "Scaffold-GS baseline"
 COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
            "ssim_hidden", "hidden_learnt", "bit_accuracy", "bit_accuracy_on_baseline", "fps_public",
            "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
@@ -118,17 +119,28 @@ def public_row(trainer, training: dict, scene, radius: float) -> dict:
             "exposure": exposure(xyz, scene.hidden_points, scene.points, radius)}
 
 
-def markdown_row(label: str, row: dict) -> str:
+def markdown_row(label: str, row: dict, baseline: dict | None = None) -> str:
+    """One table row; ``baseline``: the plain model's row, for the density ratio (the anchors
+    within r of the hidden-only surface, over the baseline's)."""
     cells = [f"{row[c]:.4g}" if isinstance(row.get(c), float) else str(row.get(c, "–")) for c in COLUMNS]
     e = row["exposure"]
-    return f"| {label} | " + " | ".join(cells) + f" | {e['surface_fraction']:.3f} | {e['coverage']:.3f} |"
+    ratio = density_ratio(e, baseline["exposure"]) if baseline is not None else None
+    return (f"| {label} | " + " | ".join(cells) + f" | {e['surface_fraction']:.3f} | {e['coverage']:.3f} | "
+            + ("–" if ratio is None else f"{ratio:.2f}") + " |")
+
+
+def density_ratio(exposed: dict, baseline: dict) -> float | None:
+    """Anchors within r of the hidden-only surface in one model over those in the baseline (two
+    ``exposure`` dicts); None when the baseline has none there."""
+    return exposed["surface_density"] / baseline["surface_density"] if baseline["surface_density"] > 0 else None
 
 
 def write_report(out: Path, meta: dict, rows: dict) -> str:
     """secure_vs_baseline.json and .md (atomically, after every model, so a later failure loses
     nothing); returns the markdown table."""
-    lines = ["| model | " + " | ".join(COLUMNS) + " | surface fraction | coverage |",
-             "|---" * (len(COLUMNS) + 3) + "|"] + [markdown_row(label, r) for label, r in rows.items()]
+    baseline = rows.get(BASELINE)
+    lines = ["| model | " + " | ".join(COLUMNS) + " | surface fraction | coverage | density ratio |",
+             "|---" * (len(COLUMNS) + 4) + "|"] + [markdown_row(label, r, baseline) for label, r in rows.items()]
     table = (f"{meta['device']}, {meta['width']}×{meta['height']}, {meta['iterations']} iterations, hidden "
              f"{meta['hidden']}, payload {meta['payload']}\n\n" + "\n".join(lines))
     atomic_write(out / "secure_vs_baseline.json", lambda f: f.write(json.dumps({"meta": meta, "rows": rows},

@@ -80,6 +80,11 @@ class TrainConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
 
 
+# The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
+# the hidden object, through MLPs `width` wide (docs/results.md, "Geometric security", measures them).
+BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024}
+
+
 @dataclasses.dataclass(frozen=True)
 class SecureConfig:
     """SecureGS on top of a ``TrainConfig``.
@@ -98,7 +103,14 @@ class SecureConfig:
     hdger: the paper's hybrid decoupled Gaussian encryption: hidden offsets come from the private
         MLP F_o†; False ("w/o HDGER", an ablation) stores explicit hidden offsets per anchor, which
         cannot be released.
-    strategy: the region-aware density strategy and its mode (rdo, scaffold, global, shared).
+    strategy: the region-aware density strategy and its mode (rdo, scaffold, global, shared, cover).
+    hidden_frame: where the private F_o† places hidden Gaussians (``PrivateHeads``): "anchor" (the
+        paper: near their anchor) or "box" (anywhere in the hidden object's box, decoded from the
+        cover's anchors nearest it); None: "box" with the "cover" mode, "anchor" otherwise.
+    hidden_offsets, hidden_width, hidden_anchors: k_hid (hidden Gaussians per anchor), the private
+        MLPs' hidden width and, in the box frame, how many anchors nearest the box decode hidden
+        Gaussians. None: the public k and d and every visible anchor in the anchor frame,
+        BOX_FRAME_DEFAULTS in the box frame.
     """
 
     payload: str = "object+bits:48"
@@ -108,8 +120,25 @@ class SecureConfig:
     feature_grad_until: float = 1.0
     hdger: bool = True
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
+    hidden_frame: str | None = None
+    hidden_offsets: int | None = None
+    hidden_width: int | None = None
+    hidden_anchors: int | None = None
+
+    def private_options(self) -> dict:
+        """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
+        serving), with the frame's defaults filled in."""
+        frame = self.hidden_frame or ("box" if self.strategy.mode == "cover" else "anchor")
+        defaults = BOX_FRAME_DEFAULTS if frame == "box" else {"n_hidden": None, "width": None, "serving": 0}
+        given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors}
+        return {"frame": frame, **{name: defaults[name] if value is None else value for name, value in given.items()}}
 
     def __post_init__(self):
+        if self.hidden_frame not in (None, "anchor", "box"):
+            raise ValueError(f"hidden_frame must be 'anchor' or 'box', got {self.hidden_frame!r}")
+        for name in ("hidden_offsets", "hidden_width", "hidden_anchors"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.hidden_weight is not None and not self.hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {self.hidden_weight}")
         for name, meaning in (("hidden_feature_grad", "a share of a gradient"),
@@ -138,12 +167,20 @@ class SceneSpec:
     seed: int = 0
     hidden: str | None = None
     level: str = "object"
+    hidden_position: tuple | None = None
+    hidden_size: float = 1.2
+    hidden_yaw: float = 0.0
+    hidden_placement: str = "stand"
     downscale: int = 1
 
     def __post_init__(self):
         for name in ("width", "height", "n_train", "n_test", "downscale"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.hidden_position is not None and len(self.hidden_position) != 3:
+            raise ValueError(f"hidden_position must be x,y,z, got {self.hidden_position}")
+        if not self.hidden_size > 0:
+            raise ValueError(f"hidden_size must be > 0, got {self.hidden_size}")
         if Path(self.source).is_dir() and not Path(self.source).is_absolute():
             object.__setattr__(self, "source", str(Path(self.source).resolve()))
 
@@ -157,7 +194,9 @@ class SceneSpec:
 
         if self.builtin:
             return load_scene(self.source, hidden=self.hidden, level=self.level, width=self.width,
-                              height=self.height, n_train=self.n_train, n_test=self.n_test, seed=self.seed)
+                              height=self.height, n_train=self.n_train, n_test=self.n_test, seed=self.seed,
+                              hidden_position=self.hidden_position, hidden_size=self.hidden_size,
+                              hidden_yaw=self.hidden_yaw, hidden_placement=self.hidden_placement)
         return load_scene(self.source, downscale=self.downscale)
 
 

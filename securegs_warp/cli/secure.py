@@ -29,8 +29,24 @@ SECURE_FLAGS = (
     ("--hide", "scene.hidden", "synthetic scenes: the hidden object (mug, lamp, pawn, robot, a mesh file) or hidden "
                                "scene (scene, garden, room); default mug / scene"),
     ("--level", "scene.level", "hidden object alone on a background (object) or inside the scene (scene)"),
-    ("--mode", "secure.strategy.mode", "density strategy: rdo (the paper's), or the ablations scaffold, global, "
-                                       "shared"),
+    ("--placement", "scene.hidden_placement", "synthetic scenes: the hidden object stands on the central object "
+                                              "(stand), sinks half into it (sink) or floats above it (float)"),
+    ("--hidden-position", "scene.hidden_position", "synthetic scenes: x,y,z of the hidden object's bottom centre "
+                                                   "(world units; the room is 10 wide); replaces --placement"),
+    ("--hidden-size", "scene.hidden_size", "synthetic scenes: the hidden object's largest side (world units)"),
+    ("--hidden-yaw", "scene.hidden_yaw", "synthetic scenes: the hidden object's turn about the vertical, degrees"),
+    ("--mode", "secure.strategy.mode", "density strategy: rdo (the paper's), cover (the cover's own anchors "
+                                       "decode the hidden object: no anchor grows for it), or the ablations "
+                                       "scaffold, global, shared"),
+    ("--hidden-frame", "secure.hidden_frame", "where the private heads place hidden Gaussians: anchor (near their "
+                                              "anchor, the paper's) or box (anywhere in the object's box); default "
+                                              "box with --mode cover, anchor otherwise"),
+    ("--hidden-offsets", "secure.hidden_offsets", "hidden Gaussians per anchor k_hid (default: 32 in the box frame, "
+                                                  "the public 10 otherwise)"),
+    ("--hidden-width", "secure.hidden_width", "hidden width of the private MLPs (default: 128 in the box frame, "
+                                              "32 otherwise)"),
+    ("--hidden-anchors", "secure.hidden_anchors", "box frame: how many anchors nearest the object decode it "
+                                                  "(default 1024)"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "
                                                 "image, 1 for a scene); lower keeps the cover closer to plain "
                                                 "Scaffold-GS"),

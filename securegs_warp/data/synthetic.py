@@ -246,19 +246,25 @@ class _Payload:
     lighting: Lighting
 
 
-def _place_object(mesh: TriMesh, layout: Layout, position, size: float, yaw: float) -> TriMesh:
-    """The hidden object placed at `position` (its bottom centre), or by default standing on the
-    layout's first host box, centred, sunk by a tenth of its height into it, so that it overlaps
-    the scene's geometry."""
+# Where a hidden object goes when no position is given: centred on the layout's first host box, its
+# bottom this fraction of its height below the box's top. "stand": sunk by a tenth, most of its
+# surface in empty space (the hard case for geometric security); "sink": half inside the host, as
+# the paper's hidden objects overlap the cover's geometry; "float": in mid-air above the host.
+PLACEMENTS = {"stand": 0.1, "sink": 0.5, "float": -0.5}
+
+
+def _place_object(mesh: TriMesh, layout: Layout, position, size: float, yaw: float, placement: str) -> TriMesh:
+    """The hidden object placed at `position` (its bottom centre), or on the layout's first host box
+    as `placement` (PLACEMENTS) says."""
     if position is not None:
         return place(mesh, position, size, yaw)
     low, high = layout.hosts[0]
     placed = place(mesh, (0.5 * (low[0] + high[0]), 0.5 * (low[1] + high[1]), 0.0), size, yaw)
-    return placed.transformed(translation=(0.0, 0.0, high[2] - 0.1 * float(placed.bounds[1, 2])))
+    return placed.transformed(translation=(0.0, 0.0, high[2] - PLACEMENTS[placement] * float(placed.bounds[1, 2])))
 
 
 def _hidden_payload(hidden, level: str, scene_name: str, layout: Layout, lighting: Lighting, seed: int,
-                    position, size: float, yaw: float, background) -> _Payload:
+                    position, size: float, yaw: float, placement: str, background) -> _Payload:
     """Resolve make_synthetic_scene's `hidden` argument (see there) into a _Payload."""
     if isinstance(hidden, str) and (hidden == "scene" or SCENE_ALIASES.get(hidden, hidden) in SCENES):
         other = "garden" if scene_name == "room" else "room"
@@ -276,7 +282,7 @@ def _hidden_payload(hidden, level: str, scene_name: str, layout: Layout, lightin
             f"unknown hidden payload {hidden!r}: use one of the objects {sorted(HIDDEN_OBJECTS)}, 'scene' or a scene "
             f"name {sorted(SCENES)}, or a mesh file ({', '.join(MESH_SUFFIXES)})"
         )
-    placed = _place_object(mesh, layout, position, size, yaw)
+    placed = _place_object(mesh, layout, position, size, yaw, placement)
     if level == "object":
         return _Payload("object", level, name, placed, placed, tuple(background), lighting)
     return _Payload("object", level, name, placed, merge([layout.mesh, placed]), layout.sky, lighting)
@@ -324,6 +330,7 @@ def make_synthetic_scene(
     hidden_position=None,
     hidden_size: float = 1.2,
     hidden_yaw: float = 0.0,
+    hidden_placement: str = "stand",
     hidden_background=(1.0, 1.0, 1.0),
     n_points: int = 4000,
     point_noise: float = 0.02,
@@ -339,8 +346,9 @@ def make_synthetic_scene(
     built-in scene) or a scene name (hidden_kind "scene", a whole scene hidden in this one).
     level: for objects, "object" (alone over hidden_background, with alpha) or "scene" (composited
     into the scene). hidden_position: world position of the object's bottom centre (default: sunk
-    into the scene's central object); hidden_size: its largest side in world units (the room is 10
-    wide); hidden_yaw: degrees about z.
+    on the scene's central object as hidden_placement says: "stand", "sink" or "float", see
+    PLACEMENTS); hidden_size: its largest side in world units (the room is 10 wide); hidden_yaw:
+    degrees about z.
     width, height: image size; n_train views on a hemisphere band around the centre, n_test on a
     ring within the band. n_points noisy points (std point_noise) sampled from surfaces the
     training views see. supersample**2 rays per pixel. shadows: cast hard shadows. device: the Warp
@@ -352,6 +360,8 @@ def make_synthetic_scene(
         raise DataError(f"level must be 'object' or 'scene', not {level!r}")
     width, height, n_train, n_test, n_points, supersample = _check_arguments(
         width, height, n_train, n_test, n_points, supersample, fov_degrees, point_noise)
+    if hidden_placement not in PLACEMENTS:
+        raise DataError(f"hidden_placement must be one of {sorted(PLACEMENTS)}, not {hidden_placement!r}")
     scene_name, layout = _scene_layout(name, seed)
     rng = [np.random.default_rng((int(seed), stream)) for stream in range(3)]
     K = intrinsics_from_fov(fov_degrees, width, height)
@@ -383,7 +393,7 @@ def make_synthetic_scene(
     if hidden is None:
         return scene
     payload = _hidden_payload(hidden, level, scene_name, layout, lighting, seed, hidden_position, hidden_size,
-                              hidden_yaw, hidden_background)
+                              hidden_yaw, hidden_placement, hidden_background)
     hidden_renderer = MeshRenderer(payload.rendered, device)
     for camera in train + test:
         view = hidden_renderer.render(camera, payload.lighting, payload.background, supersample)

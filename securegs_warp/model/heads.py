@@ -52,6 +52,8 @@ class ScaffoldHeads(nn.Module):
         num_cameras: rows of the appearance embedding (training cameras); needed when A > 0.
         add_opacity_dist, add_cov_dist, add_color_dist: feed the anchor-camera distance to that
             MLP as well as the view direction.
+        width: hidden width of the opacity, covariance and colour MLPs (None: d, as Scaffold-GS;
+            a private decoder may be wider, since nothing of its shape is published).
     """
 
     def __init__(
@@ -65,6 +67,7 @@ class ScaffoldHeads(nn.Module):
         add_opacity_dist: bool = False,
         add_cov_dist: bool = False,
         add_color_dist: bool = False,
+        width: int | None = None,
     ):
         super().__init__()
         if use_feat_bank and feat_dim % 4 != 0:
@@ -79,9 +82,10 @@ class ScaffoldHeads(nn.Module):
         self.add_color_dist = add_color_dist
 
         d, k = feat_dim, n_offsets
-        self.opacity_mlp = make_mlp(d + 3 + int(add_opacity_dist), d, k, nn.Tanh())
-        self.cov_mlp = make_mlp(d + 3 + int(add_cov_dist), d, 7 * k)
-        self.color_mlp = make_mlp(d + 3 + int(add_color_dist) + appearance_dim, d, 3 * k, nn.Sigmoid())
+        w = self.width = d if width is None else width
+        self.opacity_mlp = make_mlp(d + 3 + int(add_opacity_dist), w, k, nn.Tanh())
+        self.cov_mlp = make_mlp(d + 3 + int(add_cov_dist), w, 7 * k)
+        self.color_mlp = make_mlp(d + 3 + int(add_color_dist) + appearance_dim, w, 3 * k, nn.Sigmoid())
         self.feature_bank_mlp = make_mlp(3 + 1, d, 3, nn.Softmax(dim=1)) if use_feat_bank else None
         self.embedding_appearance = nn.Embedding(num_cameras, appearance_dim) if appearance_dim > 0 else None
 

@@ -73,7 +73,8 @@ def generate_neural_gaussians(
 
     Args:
         model: the anchors (N of them, k offsets, feature dimension d).
-        heads: the heads to decode with (same d and k as the model).
+        heads: the heads to decode with (the model's d; the model's k unless ``offset_source`` is
+            their own, which returns [Nv, heads.n_offsets, 3]).
         camera_center: [3] camera position in world space.
         visible_mask: [N] bool, the anchors to decode (see :func:`visible_anchor_mask`); None: all.
         camera_index: camera row of the heads' appearance embedding, when they have one.
@@ -96,7 +97,9 @@ def generate_neural_gaussians(
         * ``mask`` [Nv * k] bool: opacity > 0, which of the decoded Gaussians were kept.
         * ``visible_mask`` [N] bool: the anchors decoded.
     """
-    if heads.feat_dim != model.feat_dim or heads.n_offsets != model.n_offsets:
+    # Heads with their own offset source may decode another number of Gaussians per anchor (a
+    # private decoder's k_hid); the stored offsets fit only the anchors' own k.
+    if heads.feat_dim != model.feat_dim or (offset_source is stored_offsets and heads.n_offsets != model.n_offsets):
         raise ValueError(
             f"heads decode d={heads.feat_dim}, k={heads.n_offsets} but the anchors have "
             f"d={model.feat_dim}, k={model.n_offsets}"
@@ -105,7 +108,7 @@ def generate_neural_gaussians(
     if visible_mask is None:
         visible_mask = torch.ones(model.num_anchors, dtype=torch.bool, device=device)
     anchor_index = visible_mask.nonzero()[:, 0]
-    k = model.n_offsets
+    k = heads.n_offsets
 
     xyz = model.xyz[anchor_index]
     ob_view = xyz - camera_center.to(xyz)

@@ -10,6 +10,8 @@ from torch import nn
 from ..model import ScaffoldHeads, make_mlp
 from ..model.neural_gaussians import AnchorViewInputs
 
+FRAMES = ("anchor", "box")
+
 
 class PrivateHeads(nn.Module):
     """Private MLPs. ``decoder`` has exactly the public heads' shapes (F_α†, F_cov†, F_c†).
@@ -29,27 +31,71 @@ class PrivateHeads(nn.Module):
         public offsets are. The paper writes x_v + F_o†(...) without l_v; scaling keeps the MLP's
         output range independent of the scene's size and of the anchor's voxel level, which is what
         lets one small MLP place Gaussians for anchors grown at several levels. Switchable.
+    frame: where F_o† places the hidden Gaussians.
+        "anchor" (the paper): x_v + F_o†(f̂_v, d_vc), near their anchor, so hidden Gaussians need
+            anchors on the hidden surface (RDO grows them there: the release shows the shape).
+        "box": c + h ⊙ tanh(F_o†(f̂_v, (x_v − c) / h)), anywhere in the key's box (``box``: centre c
+            [3] and half-extent h [3], world units; F_o† reads the anchor's position in the box's
+            frame instead of the view direction, so the hidden geometry is the same from every view).
+            Only the ``serving`` anchors nearest the box decode hidden Gaussians; they are the
+            cover's own anchors, wherever the cover put them.
+    n_hidden: k_hid, hidden Gaussians per anchor (None: the public k).
+    width: hidden width of the private MLPs (None: d).
+    serving: the number of anchors, nearest the box first, that decode hidden Gaussians in the box
+        frame (0: every anchor that the view shows).
     """
 
     def __init__(self, public: ScaffoldHeads, *, bits: int = 0, offsets: bool = True, scale_offsets: bool = True,
-                 hidden: bool = True):
+                 hidden: bool = True, frame: str = "anchor", n_hidden: int | None = None, width: int | None = None,
+                 serving: int = 0):
         super().__init__()
-        d, k = public.feat_dim, public.n_offsets
+        if frame not in FRAMES:
+            raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
+        if frame == "box" and not offsets:
+            raise ValueError("the box frame places hidden Gaussians with F_o†: it needs offsets=True")
+        d = public.feat_dim
+        k = public.n_offsets if n_hidden is None else int(n_hidden)
+        w = d if width is None else int(width)
         self.feat_dim, self.n_offsets, self.scale_offsets = d, k, scale_offsets
+        self.frame, self.width, self.serving = frame, w, int(serving)
         self.decoder = ScaffoldHeads(d, k, use_feat_bank=public.use_feat_bank,
                                      add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
-                                     add_color_dist=public.add_color_dist) if hidden else None
-        self.offset_mlp = make_mlp(d + 3, d, 3 * k) if hidden and offsets else None
+                                     add_color_dist=public.add_color_dist, width=w) if hidden else None
+        self.offset_mlp = make_mlp(d + 3, w, 3 * k) if hidden and offsets else None
         self.bit_mlp = make_mlp(d, d, bits, bias=False) if bits > 0 else None
+        if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
+            self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
 
     @property
     def n_bits(self) -> int:
         return 0 if self.bit_mlp is None else self.bit_mlp[-1].out_features
 
     def hidden_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
-        """World-space displacements [Nv, k, 3] of the hidden Gaussians of the visible anchors."""
+        """World-space displacements [Nv, k_hid, 3] of the hidden Gaussians of the decoded anchors."""
+        if self.frame == "box":
+            centre, half = self.box[0], self.box[1]
+            where = (inputs.xyz.detach() - centre) / half
+            raw = self.offset_mlp(torch.cat([inputs.feat, where], dim=1)).view(-1, self.n_offsets, 3)
+            return centre + half * torch.tanh(raw) - inputs.xyz[:, None, :].detach()
         raw = self.offset_mlp(torch.cat([inputs.feat, inputs.ob_view], dim=1)).view(-1, self.n_offsets, 3)
         return raw * inputs.scaling[:, None, :3] if self.scale_offsets else raw
+
+    def set_box(self, lo, hi) -> None:
+        """The box frame's region: corners ``lo``, ``hi`` [3] in world units."""
+        lo, hi = (torch.as_tensor(v, dtype=torch.float32, device=self.box.device) for v in (lo, hi))
+        self.box.copy_(torch.stack([0.5 * (lo + hi), (0.5 * (hi - lo)).clamp_min(1e-6)]))
+
+    @torch.no_grad()
+    def serving_mask(self, xyz: torch.Tensor) -> torch.Tensor | None:
+        """[N] bool, the anchors that decode hidden Gaussians in the box frame (the ``serving``
+        nearest the box, by distance to it: 0 inside), from anchor positions [N, 3]; None in the
+        anchor frame or with ``serving`` 0 (the view's visible anchors decode)."""
+        if self.frame != "box" or self.serving <= 0:
+            return None
+        outside = ((xyz - self.box[0]).abs() - self.box[1]).clamp_min(0.0).norm(dim=1)
+        mask = torch.zeros(len(xyz), dtype=torch.bool, device=xyz.device)
+        mask[outside.topk(min(self.serving, len(xyz)), largest=False).indices] = True
+        return mask
 
     def bit_logits(self, feat: torch.Tensor) -> torch.Tensor:
         """Per-anchor bit logits [N, L] from anchor features [N, d]."""
@@ -72,4 +118,5 @@ class PrivateHeads(nn.Module):
     def describe(self) -> dict:
         """The constructor arguments, for the key's metadata."""
         return {"bits": self.n_bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
-                "hidden": self.decoder is not None}
+                "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
+                "width": self.width, "serving": self.serving}

@@ -42,17 +42,20 @@ class SecureModel(ScaffoldModel):
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
         return render_view(self.anchors, private.decoder, camera, background, options, camera_index=camera_index,
-                           offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad)
+                           offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
+                           anchor_mask=private.serving_mask(self.anchors.xyz))
 
     @torch.no_grad()
     def hidden_gaussians(self, camera) -> dict:
         """Every anchor decoded by the key into hidden Gaussians with ``camera``'s view directions (no
-        culling): the whole hidden payload, for export (see ``ScaffoldModel.gaussians``)."""
+        culling; in the box frame, the serving anchors'): the whole hidden payload, for export (see
+        ``ScaffoldModel.gaussians``)."""
         private = self._key()
         if private.decoder is None:
             raise ValueError("this payload hides no image: there are no hidden Gaussians")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
-        return decode_all(self.anchors, private.decoder, camera, offset_source=source)
+        return decode_all(self.anchors, private.decoder, camera, offset_source=source,
+                          anchor_mask=private.serving_mask(self.anchors.xyz))
 
     def _explicit_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""

@@ -24,6 +24,8 @@ from .payload import BIT_WEIGHT, PayloadSpec, build_payload
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
 # branch scores at or below it; a learnt one, tens of dB above on the mug).
 HIDDEN_LEARNT_MARGIN_DB = 1.0
+# The box frame's box: the hidden object's bounds grown by this fraction of their diagonal.
+BOX_MARGIN = 0.05
 
 class SecureTrainer(ScaffoldTrainer):
     """Trains a ``SecureModel``: the Scaffold-GS trainer plus the key's private heads and payload.
@@ -46,8 +48,17 @@ class SecureTrainer(ScaffoldTrainer):
         super().__init__(scene, config, device=device, strategy=strategy)
 
     def _make_model(self, anchors, heads) -> SecureModel:
-        private = PrivateHeads(heads, bits=self.spec.bits, offsets=self.secure.hdger,
-                               hidden=self.payload.has_images).to(anchors.xyz.device)
+        options = self.secure.private_options()
+        private = PrivateHeads(heads, bits=self.spec.bits, offsets=self.secure.hdger, hidden=self.payload.has_images,
+                               **options).to(anchors.xyz.device)
+        if options["frame"] == "box" and private.decoder is not None:
+            bounds = getattr(self.scene, "hidden_bbox", None)
+            if bounds is None or self.spec.kind != "object":
+                raise ValueError("hidden_frame 'box' decodes a hidden object inside its bounds: it needs an object "
+                                 "payload on a scene that knows the object's box")
+            lo, hi = np.asarray(bounds, dtype=np.float32)
+            margin = BOX_MARGIN * float(np.linalg.norm(hi - lo))  # room for splats that reach past the surface
+            private.set_box(lo - margin, hi + margin)
         if private.decoder is not None and not self.secure.hdger:
             anchors.add_hidden_offsets()
         return SecureModel(anchors, heads, private)

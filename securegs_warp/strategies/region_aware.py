@@ -16,6 +16,10 @@ Modes (the ablations of the paper's Table 4 and appendix):
   every step, one threshold, no Γ_hid and no box.
 - "global": RDO's two statistics, but τ_fix / r_down everywhere (no box): the costly alternative.
 - "shared": one gradient (both renders, every step) drives both Γ_ori and Γ_hid growth, box kept.
+- "cover": the density of plain Scaffold-GS from the public render alone: no ∇_hid, no Γ_hid, no
+  box, pruning by the public opacity. The hidden branch never changes which anchors exist, so it
+  needs private heads that decode the hidden object from the cover's own anchors
+  (``PrivateHeads(frame="box")``, SecureConfig.hidden_frame).
 """
 from __future__ import annotations
 
@@ -27,7 +31,7 @@ import torch
 
 from .scaffold import ScaffoldStrategy
 
-MODES = ("rdo", "scaffold", "global", "shared")
+MODES = ("rdo", "scaffold", "global", "shared", "cover")
 
 
 @dataclasses.dataclass
@@ -84,7 +88,7 @@ class RegionAwareStrategy(ScaffoldStrategy):
             return {}
         k = model.n_offsets
         self.accumulate(state, *branches["public"], k)
-        hidden = branches.get("hidden")
+        hidden = branches.get("hidden") if self.mode != "cover" else None
         if hidden is not None:
             g_hid, info_hid = hidden
             if self.hidden_opacity_keeps:  # an anchor that only serves the hidden branch is still useful
@@ -105,7 +109,7 @@ class RegionAwareStrategy(ScaffoldStrategy):
         """τ for growing Γ_ori: τ_fix, τ_fix / r_down inside the hidden box (per Gaussian [N·k])."""
         if self.mode == "global":
             return self.grad_threshold / self.r_down
-        if self.mode == "scaffold" or not self.use_bbox or torch.isnan(state["bbox"]).any():
+        if self.mode in ("scaffold", "cover") or not self.use_bbox or torch.isnan(state["bbox"]).any():
             return self.grad_threshold
         lo, hi = state["bbox"][:3], state["bbox"][3:]
         inside = ((model.xyz >= lo) & (model.xyz <= hi)).all(dim=1)
@@ -150,7 +154,7 @@ class RegionAwareStrategy(ScaffoldStrategy):
         grown_ori = self.grow(model, optimizer, state, threshold=self.public_threshold(model, state),
                               generator=generator)
         grown_hid = 0
-        if self.mode != "scaffold":
+        if self.mode not in ("scaffold", "cover"):
             n_before = model.num_anchors
             grown_hid = self.grow(model, optimizer, state, prefix="hid_",
                                   threshold=self.grad_threshold * self.hidden_tau_scale,

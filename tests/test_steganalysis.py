@@ -1,0 +1,151 @@
+"""Steganalysis (secure.steganalysis, securegs audit), the box-frame hiding mode and the placement
+of hidden objects in the synthetic scene."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from securegs_warp.cli import main
+from securegs_warp.config import SceneSpec, SecureConfig, apply_overrides
+from securegs_warp.data import make_synthetic_scene
+from securegs_warp.rasterizer import RasterOptions
+from securegs_warp.secure import SecureTrainer
+from securegs_warp.secure.container import open_container
+from securegs_warp.secure.steganalysis import audit, auc_by_model, detection_auc, leakage, sliced_wasserstein
+from securegs_warp.train import TrainConfig
+
+TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
+
+
+def _room_like(rng, n=6000):
+    """Anchors on the six faces of a 10-unit box: a scene's walls and floor."""
+    pts = rng.uniform(0.0, 10.0, (n, 3))
+    axis = rng.integers(0, 3, n)
+    pts[np.arange(n), axis] = rng.choice([0.0, 10.0], n)
+    return pts
+
+
+def test_a_planted_cluster_is_found_and_boxed():
+    rng = np.random.default_rng(0)
+    walls = _room_like(rng)
+    plain = audit({"xyz": walls})
+    planted = np.concatenate([walls, rng.normal((6.0, 4.0, 5.0), 0.2, (400, 3))])
+    found = audit({"xyz": planted})
+    assert found["score"] > 2 * plain["score"]
+    lo, hi = map(np.array, found["suspicious_box"])
+    assert ((lo <= (6.0, 4.0, 5.0)) & ((6.0, 4.0, 5.0) <= hi)).all() and (hi - lo).max() < 3.0
+
+
+def test_a_uniform_cloud_scores_low_and_auc_is_chance_between_alike_models():
+    rng = np.random.default_rng(1)
+    scores = [audit({"xyz": rng.uniform(0, 10, (5000, 3))})["score"] for _ in range(6)]
+    planted = [audit({"xyz": np.concatenate([rng.uniform(0, 10, (5000, 3)),
+                                             rng.normal(5.0, 0.2, (300, 3))])})["score"] for _ in range(3)]
+    assert max(scores) < min(planted)
+    assert detection_auc(planted, scores) == 1.0
+    assert 0.2 <= detection_auc(scores[:3], scores[3:]) <= 0.8
+
+
+def test_auc_over_runs_with_and_without_a_reference():
+    rng = np.random.default_rng(4)
+    runs = []
+    for _ in range(3):
+        walls = _room_like(rng, 3000)
+        runs.append({"plain": walls, "alike": _room_like(rng, 3000),
+                     "traced": np.concatenate([walls, rng.normal((6.0, 4.0, 5.0), 0.2, (300, 3))])})
+    for with_reference in (False, True):
+        result = auc_by_model(runs, "plain", with_reference)
+        assert result["traced"]["auc"] == 1.0 and "auc" not in result["plain"]
+        assert len(result["traced"]["scores"]) == (6 if with_reference else 3)
+    with pytest.raises(ValueError, match="plain model"):
+        auc_by_model([{"traced": runs[0]["traced"]}], "plain")
+
+
+def test_sliced_wasserstein_tells_a_shifted_distribution():
+    rng = np.random.default_rng(2)
+    a, b = rng.normal(size=(2000, 8)), rng.normal(size=(2000, 8))
+    assert sliced_wasserstein(a, b) < 0.05 < sliced_wasserstein(a, b + 0.5)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2, n_points=600)
+
+
+def test_cover_mode_grows_no_anchor_for_the_hidden_object(scene):
+    """In the cover mode the anchors are the plain model's: no Γ_hid, no box, growth and pruning
+    from the public render alone; the private heads decode k_hid Gaussians in the object's box."""
+    secure = apply_overrides(SecureConfig(payload="object"), {"strategy.mode": "cover", "hidden_offsets": 4,
+                                                              "hidden_width": 16, "hidden_anchors": 50})
+    trainer = SecureTrainer(scene, TrainConfig(iterations=20, raster=RasterOptions(tile_size=8)), secure)
+    s = trainer.strategy
+    s.start_stat, s.update_from, s.update_interval, s.update_until = 0, 0, 5, 20
+    stats = [trainer.step() for _ in range(20)]
+    assert int(trainer.strategy_state["is_hidden"].sum()) == 0
+    assert torch.isnan(trainer.strategy_state["bbox"]).all()
+    assert sum(st.get("grown_hidden", 0) for st in stats) == 0
+    private = trainer.model.private
+    assert (private.frame, private.n_offsets, private.width, private.serving) == ("box", 4, 16, 50)
+    out = trainer.render_hidden(scene.train[0], 0)
+    g = out["gaussians"]
+    assert int(g["visible_mask"].sum()) == 50 and g["neural_opacity"].shape[0] == 50 * 4
+    lo, hi = private.box[0] - private.box[1], private.box[0] + private.box[1]
+    assert ((g["means"] >= lo - 1e-5) & (g["means"] <= hi + 1e-5)).all()
+
+
+def test_box_frame_options_are_in_the_key_and_reveal_rebuilds_them(tmp_path):
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
+                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", *TINY]) == 0
+    model, meta = open_container(out / "public", out / "key.safetensors")
+    assert meta["heads"]["frame"] == "box" and (meta["heads"]["n_hidden"], meta["heads"]["width"]) == (3, 8)
+    assert model.private.serving == 40 and model.private.box[1].min() > 0
+    revealed = tmp_path / "r"
+    assert main(["reveal", str(out / "public"), "--key", str(out / "key.safetensors"), "--out", str(revealed)]) == 0
+    assert any(p.name.startswith("hidden_") for p in (revealed / "renders").iterdir())
+
+
+def test_audit_command_prints_one_json_object(tmp_path, capsys):
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", *TINY]) == 0
+    capsys.readouterr()
+    assert main(["audit", str(out / "public"), "--reference", str(out / "public"), "--key",
+                 str(out / "key.safetensors"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert {"score", "suspicious_box", "anchors", "attribute_distances"} <= set(report)
+    assert set(report["attribute_distances"]) == {"features", "offsets", "scales", "opacities"}
+    assert max(report["attribute_distances"].values()) < 1e-6  # the release against itself
+
+
+def test_leakage_counts_anchors_on_the_hidden_surface():
+    rng = np.random.default_rng(3)
+    sphere = rng.normal(size=(2000, 3))
+    sphere = 5.0 + sphere / np.linalg.norm(sphere, axis=1, keepdims=True)  # the hidden surface, radius 1
+    walls = _room_like(rng)
+    reference = np.concatenate([walls, sphere[::100]])  # a plain model has a few anchors there by chance
+    traced = np.concatenate([reference, sphere[1:1000:2] * 1.01 - 0.05])  # anchors grown on the surface
+    leak = leakage(traced, sphere, reference)
+    assert leak["coverage"] > 0.5 > leak["reference_coverage"] and leak["density_ratio"] > 10
+    assert leakage(reference, sphere, reference)["density_ratio"] == pytest.approx(1.0)
+    assert leakage(walls, sphere, walls)["density_ratio"] is None  # no reference anchor near it
+
+
+@pytest.mark.parametrize("placement", ["stand", "sink", "float"])
+def test_placement_puts_the_object_on_in_or_above_its_host(placement):
+    spec = SceneSpec(hidden="pawn", width=16, height=12, n_train=2, n_test=0, hidden_placement=placement,
+                     hidden_size=1.0, hidden_yaw=30.0)
+    bbox = spec.load().hidden_bbox
+    stand = SceneSpec(hidden="pawn", width=16, height=12, n_train=2, n_test=0, hidden_size=1.0).load().hidden_bbox
+    shift = {"stand": 0.0, "sink": -0.4, "float": 0.6}[placement] * (stand[1, 2] - stand[0, 2])
+    assert bbox[0, 2] == pytest.approx(stand[0, 2] + shift, abs=1e-4)
+
+
+def test_hidden_position_flag_places_the_object(tmp_path):
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "1", "--quiet", "--payload", "object", "--hide", "pawn",
+                 "--hidden-position", "1,2,0.5", "--hidden-size", "0.8", *TINY]) == 0
+    scene = json.loads((out / "config.json").read_text())["scene"]
+    assert (scene["hidden_position"], scene["hidden_size"]) == ([1.0, 2.0, 0.5], 0.8)
+    bbox = SceneSpec(**{**scene, "hidden_position": tuple(scene["hidden_position"])}).load().hidden_bbox
+    assert np.allclose(0.5 * (bbox[0, :2] + bbox[1, :2]), (1.0, 2.0), atol=0.2) and bbox[0, 2] == pytest.approx(0.5)
