@@ -133,10 +133,10 @@ def test_leakage_counts_anchors_on_the_hidden_surface():
 
 @pytest.mark.parametrize("placement", ["stand", "sink", "float"])
 def test_placement_puts_the_object_on_in_or_above_its_host(placement):
-    spec = SceneSpec(hidden="pawn", width=16, height=12, n_train=2, n_test=0, hidden_placement=placement,
+    spec = SceneSpec(hidden="pawn", width=16, height=12, n_train=2, n_test=1, hidden_placement=placement,
                      hidden_size=1.0, hidden_yaw=30.0)
     bbox = spec.load().hidden_bbox
-    stand = SceneSpec(hidden="pawn", width=16, height=12, n_train=2, n_test=0, hidden_size=1.0).load().hidden_bbox
+    stand = SceneSpec(hidden="pawn", width=16, height=12, n_train=2, n_test=1, hidden_size=1.0).load().hidden_bbox
     shift = {"stand": 0.0, "sink": -0.4, "float": 0.6}[placement] * (stand[1, 2] - stand[0, 2])
     assert bbox[0, 2] == pytest.approx(stand[0, 2] + shift, abs=1e-4)
 
