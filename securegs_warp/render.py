@@ -17,14 +17,16 @@ def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
 
 def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, options: RasterOptions | None = None,
                 *, camera_index: int | None = None, offset_source=None, feature_grad: float = 1.0,
-                scaling_grad: float = 1.0) -> dict:
+                scaling_grad: float = 1.0, anchor_mask: torch.Tensor | None = None) -> dict:
     """Decode ``anchors`` (an ``AnchorModel``) visible from ``cam`` with ``heads`` and rasterize them.
 
     background: [3] colour behind the Gaussians (None: black). options: the rasterizer's options
     (default ``RasterOptions()``). camera_index: the camera's row of an appearance embedding (views
     without one of their own, held-out ones, use the first camera's). offset_source: where the
     Gaussians sit (default: the stored public offsets; SecureGS's hidden branch passes its private
-    offset predictor). feature_grad, scaling_grad: see ``generate_neural_gaussians``.
+    offset predictor). feature_grad, scaling_grad: see ``generate_neural_gaussians``. anchor_mask: [N]
+    bool, anchors that may be decoded (None: all); robust training drops anchors from the hidden render
+    with it.
 
     Returns dict: ``image`` [H, W, 3], ``alpha`` [H, W, 1], ``info`` (rasterize info),
     ``gaussians`` (generate_neural_gaussians output).
@@ -32,6 +34,8 @@ def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, op
     device = anchors.xyz.device
     viewmat, K = camera_tensors(cam, device)
     visible = visible_anchor_mask(anchors, viewmat, K, cam.width, cam.height)
+    if anchor_mask is not None:
+        visible = visible & anchor_mask
     appearance = (camera_index or 0) if heads.appearance_dim else None
     extra = {"offset_source": offset_source} if offset_source is not None else {}
     g = generate_neural_gaussians(anchors, heads, camera_center_from_viewmat(viewmat), visible,

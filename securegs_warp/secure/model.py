@@ -31,18 +31,23 @@ class SecureModel(ScaffoldModel):
         return self.private
 
     def render_hidden(self, camera, options: RasterOptions | None = None, *, background: torch.Tensor | None = None,
-                      camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0) -> dict:
+                      camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
+                      anchors=None) -> dict:
         """The hidden branch's render of a view (as ``ScaffoldModel.render``); needs the key.
 
         feature_grad, scaling_grad: the share of this render's gradient that reaches the public
         anchor features and scalings (training only; see ``generate_neural_gaussians``).
+        anchors: what to decode instead of this model's anchors: robust training's
+        ``PerturbedAnchors`` (same rows; its ``keep`` mask drops anchors from the render).
         """
         private = self._key()
         if private.decoder is None:
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
-        return render_view(self.anchors, private.decoder, camera, background, options, camera_index=camera_index,
-                           offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad)
+        anchors = self.anchors if anchors is None else anchors
+        return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
+                           offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
+                           anchor_mask=getattr(anchors, "keep", None))
 
     @torch.no_grad()
     def hidden_gaussians(self, camera) -> dict:
