@@ -26,6 +26,8 @@ from .rasterizer import RasterOptions
 from .scaffold_model import ScaffoldModel
 from .secure.model import SecureModel
 
+# The PSNR reported for renders identical to their reference (infinite otherwise, which JSON cannot hold).
+PSNR_IDENTICAL = 100.0
 SCORE_KEYS = ("psnr_hidden", "ssim_hidden", "psnr_hidden_truth", "bit_accuracy", "psnr_public", "ssim_public",
               "anchors")
 
@@ -91,7 +93,7 @@ def score_release(model: SecureModel, views: KeyViews, reference: list[torch.Ten
     """SCORE_KEYS of a release opened with its key; None where a score does not apply.
 
     reference: hidden targets from ``reference_hidden`` (None: this is the reference itself, so
-    ``psnr_hidden``/``ssim_hidden`` are None). scene: the cover's data: its held-out views (the
+    ``psnr_hidden``/``ssim_hidden`` are None); identical renders score PSNR_IDENTICAL. scene: the cover's data: its held-out views (the
     training views without them) for ``psnr_public``/``ssim_public``, and the hidden images of
     cameras named as the key's for ``psnr_hidden_truth``.
     """
@@ -101,7 +103,7 @@ def score_release(model: SecureModel, views: KeyViews, reference: list[torch.Ten
     renders = reference_hidden(model, views)
     if reference is not None and renders:
         metrics = image_metrics(zip(renders, reference), device, with_lpips=False)
-        out["psnr_hidden"], out["ssim_hidden"] = metrics["psnr"], metrics["ssim"]
+        out["psnr_hidden"], out["ssim_hidden"] = min(metrics["psnr"], PSNR_IDENTICAL), metrics["ssim"]
     if views.message is not None and model.private is not None and model.private.bit_mlp is not None:
         out["bit_accuracy"] = float((model.decode_bits() == views.message).float().mean())
     if scene is not None:
@@ -181,9 +183,9 @@ def write_sweep(out: Path, rows: list[dict], meta: dict) -> str:
 
 
 def plot_sweep(path: Path, rows: list[dict]) -> None:
-    """One panel per attack: hidden PSNR (against the true hidden views where known, else against
-    the unattacked render) and bit accuracy against strength, one line per model, the unattacked
-    level dashed. Needs matplotlib (the ``plots`` extra)."""
+    """One column per attack: hidden PSNR (against the true hidden views where known, else against
+    the unattacked render), bit accuracy and cover PSNR against strength, one line per model, its
+    unattacked level dashed. Needs matplotlib (the ``plots`` extra)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -192,36 +194,41 @@ def plot_sweep(path: Path, rows: list[dict]) -> None:
     names = [n for n in dict.fromkeys(r["attack"] for r in rows) if n != "none"]
     models = list(dict.fromkeys(r["model"] for r in rows))
     truth = any(r.get("psnr_hidden_truth") is not None for r in rows)
-    key = "psnr_hidden_truth" if truth else "psnr_hidden"
+    panels = (("psnr_hidden_truth" if truth else "psnr_hidden", "hidden PSNR (dB)" + (" vs truth" if truth else "")),
+              ("bit_accuracy", "bit accuracy (%)"), ("psnr_public", "cover PSNR (dB)"))
     cols = min(5, len(names))
-    pairs = (len(names) + cols - 1) // cols
-    fig, axes = plt.subplots(2 * pairs, cols, figsize=(3.2 * cols, 5.0 * pairs), squeeze=False)
-    for i in range(len(names), pairs * cols):  # empty places of the last row
-        axes[2 * (i // cols), i % cols].axis("off")
-        axes[2 * (i // cols) + 1, i % cols].axis("off")
+    blocks = (len(names) + cols - 1) // cols
+    fig, axes = plt.subplots(3 * blocks, cols, figsize=(3.2 * cols, 6.6 * blocks), squeeze=False)
+    for i in range(len(names), blocks * cols):  # empty places of the last block
+        for p in range(3):
+            axes[3 * (i // cols) + p, i % cols].axis("off")
     for i, name in enumerate(names):
-        top, bottom = axes[2 * (i // cols), i % cols], axes[2 * (i // cols) + 1, i % cols]
+        column = [axes[3 * (i // cols) + p, i % cols] for p in range(3)]
         for j, label in enumerate(models):
-            colour = f"C{j}"
             these = [r for r in rows if r["model"] == label and r["attack"] == name]
             base = next(r for r in rows if r["model"] == label and r["attack"] == "none")
             x = [r["strength"] for r in these]
-            style = "o-" if len(x) > 1 else "o"
-            top.plot(x, [np.nan if r[key] is None else r[key] for r in these], style, color=colour, label=label)
-            bottom.plot(x, [np.nan if r["bit_accuracy"] is None else 100 * r["bit_accuracy"] for r in these], style,
-                        color=colour)
-            if truth and base[key] is not None:
-                top.axhline(base[key], color=colour, ls="--", lw=0.8)
-        top.set_title(name)
-        bottom.set_xlabel("STD (smaller removes more)" if name == "sor" else "strength")
+            for ax, (key, _) in zip(column, panels):
+                scale = 100.0 if key == "bit_accuracy" else 1.0
+                y = [np.nan if r[key] is None else scale * r[key] for r in these]
+                ax.plot(x, y, "o-" if len(x) > 1 else "o", color=f"C{j}", label=label)
+                if base[key] is not None:
+                    ax.axhline(scale * base[key], color=f"C{j}", ls="--", lw=0.8)
+                ax.ticklabel_format(axis="y", useOffset=False)
+        column[0].set_title(name)
+        column[2].set_xlabel("STD (smaller removes more)" if name == "sor" else "strength")
+        column[1].set_ylim(40, 102)
+        for ax in (column[0], column[2]):  # at least 2 dB tall, so that noise does not look like a trend
+            lo, hi = ax.get_ylim()
+            if hi - lo < 2.0:
+                ax.set_ylim((lo + hi) / 2 - 1.0, (lo + hi) / 2 + 1.0)
         if i % cols == 0:
-            top.set_ylabel("hidden PSNR (dB)" + (" vs truth" if truth else " vs unattacked"))
-            bottom.set_ylabel("bit accuracy (%)")
-        bottom.set_ylim(40, 102)
+            for ax, (_, ylabel) in zip(column, panels):
+                ax.set_ylabel(ylabel)
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
+    fig.savefig(buffer, format="png", dpi=100)
     plt.close(fig)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda f: f.write(buffer.getvalue()))

@@ -16,6 +16,7 @@ import dataclasses
 import torch
 
 from ..attacks import Attack, column_noise, quantize_columns, random_prune_mask
+from ..model.anchors import AnchorSizes
 
 ROBUST_ATTACKS = ("prune-random", "noise-xyz", "noise-feat", "quantize")
 QUANTIZE_MAX_BITS = 16
@@ -37,7 +38,7 @@ def parse_robust(text: str) -> list[Attack]:
 
 
 @dataclasses.dataclass
-class PerturbedAnchors:
+class PerturbedAnchors(AnchorSizes):
     """What the hidden decoding reads of an ``AnchorModel``, perturbed for one step. Tensors are N
     rows (the anchors' own N: dropout is ``keep``, not removal, so indices match the model's).
     Gradients flow through the perturbations to the model's parameters.
@@ -53,18 +54,6 @@ class PerturbedAnchors:
     rotation: torch.Tensor
     opacity: torch.Tensor
     keep: torch.Tensor | None = None
-
-    @property
-    def num_anchors(self) -> int:
-        return self.xyz.shape[0]
-
-    @property
-    def feat_dim(self) -> int:
-        return self.feat.shape[1]
-
-    @property
-    def n_offsets(self) -> int:
-        return self.offsets.shape[1]
 
 
 def perturb(anchors, attacks: list[Attack], generator: torch.Generator) -> PerturbedAnchors:
