@@ -18,12 +18,13 @@ d feature channels throughout.
 - ``purify:F``: the GSPure idea on anchors. Each anchor's contribution to the public renders is the
   alpha-weighted pixel coverage of its Gaussians, Σ over the context's cameras, pixels and its
   Gaussians of T·α (the weight the Gaussian's colour gets in the pixel), summed exactly through the
-  rasterizer's gradient with respect to the colours. Anchors are clustered by k-means on their
-  standardised position, log contribution and total opacity; a cluster's suspicion is the mean over
-  its anchors of z(−log contribution) + z(isolation), isolation being the mean distance to the 8
-  nearest anchors. The most suspicious clusters are pruned first (anchors in a cluster by their own
-  suspicion) until round(F·N) anchors are gone: what serves the hidden payload alone renders little
-  in public and, where the hidden object stands in empty space, stands apart.
+  rasterizer's gradient with respect to the colours. Anchors are clustered by k-means (32
+  clusters) on their standardised position, log contribution and total opacity; a cluster's
+  suspicion is the mean over its anchors of z(−log contribution) + z(isolation), isolation being the
+  mean distance to the 8 nearest anchors of at least median contribution (the visible surfaces). The
+  most suspicious clusters are pruned first (anchors in a cluster by their own suspicion) until
+  round(F·N) anchors are gone: what serves the hidden payload alone renders little in public and,
+  where the hidden object stands in empty space, stands apart from the visible surfaces.
 - ``finetune:N``: the attacker trains the release for N steps on the cover's training views with
   the public loss and heads only (Scaffold-GS's learning-rate schedules compressed to N steps, no
   densification). Needs the cover's scene.
@@ -51,7 +52,7 @@ ATTACK_SYNTAX = ("prune-random:F", "prune-opacity:F", "noise-xyz:S", "noise-feat
                  "quantize:B", "half", "purify:F", "finetune:N", "export-roundtrip")
 EXPORT_NOT_APPLICABLE = ("a standard 3DGS PLY holds decoded Gaussians, not anchors, features or MLPs: a Scaffold-GS "
                          "release cannot be read back from one")
-PURIFY_CLUSTERS = 8
+PURIFY_CLUSTERS = 32
 ISOLATION_NEIGHBOURS = 8
 
 
@@ -201,17 +202,22 @@ def sor_mask(xyz: torch.Tensor, neighbours: int, std_ratio: float) -> torch.Tens
     return mean > mean.mean() + std_ratio * mean.std()
 
 
-def mean_neighbour_distance(xyz: torch.Tensor, neighbours: int) -> torch.Tensor:
+def mean_neighbour_distance(xyz: torch.Tensor, neighbours: int, among: torch.Tensor | None = None) -> torch.Tensor:
     """[N] mean distance of each point of ``xyz`` [N, 3] to its ``neighbours`` nearest other points
-    (fewer when there are fewer points), float64 on the CPU, returned on ``xyz``'s device."""
+    (fewer when there are fewer), float64 on the CPU, returned on ``xyz``'s device. among: [N] bool,
+    the points that count as neighbours (default: all)."""
     from sklearn.neighbors import NearestNeighbors
 
     points = xyz.detach().cpu().double().numpy()
-    n = min(neighbours, points.shape[0] - 1)
+    pool = points if among is None else points[among.cpu().numpy()]
+    n = min(neighbours, pool.shape[0] - 1)
     if n < 1:
         return torch.zeros(points.shape[0], dtype=torch.float64, device=xyz.device)
-    dist, _ = NearestNeighbors(n_neighbors=n + 1).fit(points).kneighbors(points)
-    return torch.from_numpy(dist[:, 1:].mean(axis=1)).to(xyz.device)
+    dist, _ = NearestNeighbors(n_neighbors=n + 1).fit(pool).kneighbors(points)
+    # A point of the pool finds itself first, at distance 0: that column is skipped for it.
+    inside = np.ones(points.shape[0], dtype=bool) if among is None else among.cpu().numpy()
+    dist = np.where(inside[:, None], dist[:, 1:], dist[:, :n])
+    return torch.from_numpy(dist.mean(axis=1)).to(xyz.device)
 
 
 @torch.no_grad()
@@ -252,7 +258,8 @@ def purify_mask(model: ScaffoldModel, cameras: list[Camera], fraction: float, ra
     n = model.anchors.num_anchors
     contribution = torch.log1p(anchor_contribution(model, cameras, raster)).double().cpu()
     opacity = anchor_opacity(model, cameras).double().cpu()
-    isolation = mean_neighbour_distance(model.anchors.xyz, ISOLATION_NEIGHBOURS).double().cpu()
+    visible = contribution >= contribution.median()
+    isolation = mean_neighbour_distance(model.anchors.xyz, ISOLATION_NEIGHBOURS, visible).double().cpu()
     features = torch.cat([model.anchors.xyz.detach().double().cpu(), contribution[:, None], opacity[:, None]], dim=1)
     features = _zscore(features)
     labels = KMeans(n_clusters=min(PURIFY_CLUSTERS, n), n_init=4, random_state=seed).fit(features.numpy()).labels_

@@ -182,6 +182,24 @@ def test_perturb_draws_up_to_the_strength_and_keeps_rows():
     assert torch.equal(model.anchors.feat.grad, torch.ones_like(model.anchors.feat))
 
 
+def test_robust_prune_opacity_drops_the_least_opaque_decoded_anchors():
+    model = tiny_model(n=10)
+    opacity = torch.tensor([5.0, 1.0, float("nan"), 3.0, 0.5, 4.0, float("nan"), 2.0, 6.0, 7.0])
+    g = torch.Generator().manual_seed(0)
+    while True:  # the fraction is drawn in [0, 0.5]: wait for a draw that drops 2 of the 8 decoded
+        view = perturb(model.anchors, parse_robust("prune-opacity:0.5"), g, opacity)
+        if int((~view.keep).sum()) == 2:
+            break
+    assert (~view.keep).nonzero()[:, 0].tolist() == [1, 4]
+
+
+def test_mean_neighbour_distance_among_a_subset():
+    xyz = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [10.0, 0, 0]])
+    among = torch.tensor([True, True, False, False])
+    assert A.mean_neighbour_distance(xyz, 1, among).tolist() == [1.0, 1.0, 2.0, 9.0]
+    assert A.mean_neighbour_distance(xyz, 1).tolist() == [1.0, 1.0, 2.0, 7.0]
+
+
 def test_robust_training_perturbs_only_the_hidden_branch(scene, monkeypatch):
     import securegs_warp.scaffold_model as scaffold_model
     import securegs_warp.secure.model as secure_model

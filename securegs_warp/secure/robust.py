@@ -4,8 +4,10 @@ payload survives those attacks on the release (``SecureConfig.robust``).
 A robust spec joins attack specs with ``+`` (``prune-random:0.3+noise-feat:0.2+quantize:8``); each
 step draws a strength for each of them: a fraction or σ uniformly in [0, the given value], and for
 ``quantize:B`` a bit depth uniformly in B..16. Only attacks on what the hidden branch reads are
-offered: anchor dropout (``prune-random``), noise on positions and features, quantisation of
-positions, features and scalings. The hidden branch never reads the public offsets, so
+offered: anchor dropout at random (``prune-random``) or of the anchors with the least public
+opacity (``prune-opacity``: among the anchors the step's public render decoded, by the total opacity
+of their public Gaussians in that view), noise on positions and features, quantisation of positions,
+features and scalings. The hidden branch never reads the public offsets, so
 ``noise-offset`` has nothing to train against. The perturbed anchors feed the hidden render and the
 bit loss only; the public render reads the anchors themselves, so the cover is trained as before.
 """
@@ -15,10 +17,10 @@ import dataclasses
 
 import torch
 
-from ..attacks import Attack, column_noise, quantize_columns, random_prune_mask
+from ..attacks import Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
 from ..model.anchors import AnchorSizes
 
-ROBUST_ATTACKS = ("prune-random", "noise-xyz", "noise-feat", "quantize")
+ROBUST_ATTACKS = ("prune-random", "prune-opacity", "noise-xyz", "noise-feat", "quantize")
 QUANTIZE_MAX_BITS = 16
 
 
@@ -56,14 +58,21 @@ class PerturbedAnchors(AnchorSizes):
     keep: torch.Tensor | None = None
 
 
-def perturb(anchors, attacks: list[Attack], generator: torch.Generator) -> PerturbedAnchors:
-    """One draw of ``attacks`` (from ``parse_robust``) on an ``AnchorModel``'s tensors, in order."""
+def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
+            public_opacity: torch.Tensor | None = None) -> PerturbedAnchors:
+    """One draw of ``attacks`` (from ``parse_robust``) on an ``AnchorModel``'s tensors, in order.
+
+    public_opacity: [N] total public opacity of each anchor in this step's view, NaN for anchors
+    the view did not decode (needed by ``prune-opacity``)."""
     view = PerturbedAnchors(anchors.xyz, anchors.feat, anchors.offsets, anchors.scaling, anchors.rotation,
                             anchors.opacity)
     for attack in attacks:
         u = float(torch.rand((), generator=generator))
-        if attack.name == "prune-random":
-            dropped = random_prune_mask(view.num_anchors, u * attack.args[0], generator, view.xyz.device)
+        if attack.name.startswith("prune-"):
+            if attack.name == "prune-random":
+                dropped = random_prune_mask(view.num_anchors, u * attack.args[0], generator, view.xyz.device)
+            else:
+                dropped = _least_opaque(public_opacity, u * attack.args[0])
             view.keep = ~dropped if view.keep is None else view.keep & ~dropped
         elif attack.name in ("noise-xyz", "noise-feat"):
             name = attack.name.removeprefix("noise-")
@@ -76,3 +85,21 @@ def perturb(anchors, attacks: list[Attack], generator: torch.Generator) -> Pertu
                 setattr(view, name, values + (quantize_columns(values.detach(), min(bits, QUANTIZE_MAX_BITS))
                                               - values.detach()))
     return view
+
+
+def _least_opaque(public_opacity: torch.Tensor, fraction: float) -> torch.Tensor:
+    """[N] bool: the round(fraction·V) anchors of least ``public_opacity`` [N] among the V that are
+    not NaN."""
+    decoded = (~torch.isnan(public_opacity)).nonzero()[:, 0]
+    dropped = torch.zeros_like(public_opacity, dtype=torch.bool)
+    dropped[decoded[lowest_mask(public_opacity[decoded], fraction)]] = True
+    return dropped
+
+
+@torch.no_grad()
+def public_opacity(gaussians: dict, anchors) -> torch.Tensor:
+    """[N] total opacity of each anchor's public Gaussians in one render (``generate_neural_gaussians``
+    output ``gaussians``: negative opacities count as 0), NaN for anchors the render did not decode."""
+    total = torch.full((anchors.num_anchors,), float("nan"), device=anchors.xyz.device)
+    total[gaussians["visible_mask"]] = gaussians["neural_opacity"].clamp_min(0.0).view(-1, anchors.n_offsets).sum(1)
+    return total

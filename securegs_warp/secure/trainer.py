@@ -20,7 +20,7 @@ from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
 from .model import SecureModel
 from .payload import BIT_WEIGHT, PayloadSpec, build_payload
-from .robust import parse_robust, perturb
+from .robust import parse_robust, perturb, public_opacity
 
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
 # branch scores at or below it; a learnt one, tens of dB above on the mug).
@@ -82,7 +82,8 @@ class SecureTrainer(ScaffoldTrainer):
     def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
         p, extra = self.payload, {}
         # Robust training: this step's hidden branch (render and bits) reads randomly attacked anchors.
-        anchors = perturb(self.model.anchors, self.robust, self.generator) if self.robust else None
+        anchors = perturb(self.model.anchors, self.robust, self.generator,
+                          public_opacity(branches["public"][0], self.model.anchors)) if self.robust else None
         view = index if p.views is not None else p.image_view
         if view is not None:
             out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors)
