@@ -28,8 +28,8 @@ from .secure.model import SecureModel
 
 # The PSNR reported for renders identical to their reference (infinite otherwise, which JSON cannot hold).
 PSNR_IDENTICAL = 100.0
-SCORE_KEYS = ("psnr_hidden", "ssim_hidden", "psnr_hidden_truth", "bit_accuracy", "psnr_public", "ssim_public",
-              "anchors")
+SCORE_KEYS = ("psnr_hidden", "ssim_hidden", "psnr_hidden_truth", "ssim_hidden_truth", "bit_accuracy", "psnr_public",
+              "ssim_public", "anchors")
 
 # Each attack's strengths in the sweep, weakest first.
 SWEEP = {
@@ -95,7 +95,7 @@ def score_release(model: SecureModel, views: KeyViews, reference: list[torch.Ten
     reference: hidden targets from ``reference_hidden`` (None: this is the reference itself, so
     ``psnr_hidden``/``ssim_hidden`` are None); identical renders score PSNR_IDENTICAL. scene: the cover's data: its held-out views (the
     training views without them) for ``psnr_public``/``ssim_public``, and the hidden images of
-    cameras named as the key's for ``psnr_hidden_truth``.
+    cameras named as the key's for ``psnr_hidden_truth``/``ssim_hidden_truth``.
     """
     device = model.device
     out = dict.fromkeys(SCORE_KEYS)
@@ -111,7 +111,8 @@ def score_release(model: SecureModel, views: KeyViews, reference: list[torch.Ten
         truth = [(r, torch.as_tensor(by_name[c.name].hidden, device=device)) for r, c in zip(renders, views.hidden)
                  if c.name in by_name and by_name[c.name].hidden is not None]
         if truth:
-            out["psnr_hidden_truth"] = image_metrics(truth, device, with_lpips=False)["psnr"]
+            metrics = image_metrics(truth, device, with_lpips=False)
+            out["psnr_hidden_truth"], out["ssim_hidden_truth"] = metrics["psnr"], metrics["ssim"]
         background = None if scene.background is None else torch.tensor(scene.background, dtype=torch.float32,
                                                                          device=device)
         pairs = [(model.render(c, views.raster, background=background)["image"].clamp(0, 1),
