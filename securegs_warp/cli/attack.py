@@ -84,7 +84,8 @@ def cmd_attack(args) -> int:
         note = "" if report["applicable"] else f" (not applicable: {report['reason']})"
         print(f"{report['attack']}: anchors {report['anchors_before']} -> {report['anchors_after']}{note}")
     for name, scores in (("before", before), ("after", after)):
-        print(f"{name:6s} " + "  ".join(f"{k}={'–' if v is None else format(v, '.4g')}" for k, v in scores.items()))
+        print(f"{name:6s} " + "  ".join(f"{k}={'–' if v is None else format(v, '.4g') if isinstance(v, float) else v}"
+                                        for k, v in scores.items()))
     print(f"attacked release in {out.path}" + ("" if not heads_changed else
                                                " (its MLPs changed: the key's fingerprint no longer matches it)"))
     return 0
