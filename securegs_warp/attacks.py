@@ -52,6 +52,8 @@ ATTACK_SYNTAX = ("prune-random:F", "prune-opacity:F", "noise-xyz:S", "noise-feat
                  "quantize:B", "half", "purify:F", "finetune:N", "export-roundtrip")
 EXPORT_NOT_APPLICABLE = ("a standard 3DGS PLY holds decoded Gaussians, not anchors, features or MLPs: a Scaffold-GS "
                          "release cannot be read back from one")
+FINETUNE_NEEDS_SCENE = ("finetune needs the cover's training views: give --scene (and the scene options it was "
+                        "trained with)")
 PURIFY_CLUSTERS = 32
 ISOLATION_NEIGHBOURS = 8
 
@@ -231,7 +233,8 @@ def anchor_opacity(model: ScaffoldModel, cameras: list[Camera]) -> torch.Tensor:
     return total / max(1, len(cameras))
 
 
-def anchor_contribution(model: ScaffoldModel, cameras: list[Camera], raster: RasterOptions | None = None) -> torch.Tensor:
+def anchor_contribution(model: ScaffoldModel, cameras: list[Camera],
+                        raster: RasterOptions | None = None) -> torch.Tensor:
     """[N] each anchor's alpha-weighted contribution to the public renders of ``cameras``: Σ over
     cameras, pixels and the anchor's Gaussians of T·α. A pixel is Σ_i T_i α_i c_i + T·background, so
     the gradient of the image's first channel summed over pixels with respect to Gaussian i's colour
@@ -299,8 +302,7 @@ def _finetune(model: ScaffoldModel, steps: int, ctx: AttackContext) -> None:
     from .train import ScaffoldTrainer
 
     if ctx.scene is None:
-        raise ValueError("finetune needs the cover's training views: give --scene (and the scene options it was "
-                         "trained with)")
+        raise ValueError(FINETUNE_NEEDS_SCENE)
     config = dataclasses.replace(ctx.train, iterations=steps, densify=False, raster=ctx.raster)
     trainer = ScaffoldTrainer(ctx.scene, config, device=model.device)
     trainer.start_from(model)
@@ -346,6 +348,5 @@ def apply_attack(model: ScaffoldModel, attack: Attack, ctx: AttackContext) -> di
 def apply_attacks(model: ScaffoldModel, attacks: list[Attack], ctx: AttackContext) -> list[dict]:
     """Apply ``attacks`` left to right to ``model`` in place; one report per attack."""
     if any(a.needs_scene for a in attacks) and ctx.scene is None:
-        raise ValueError("finetune needs the cover's training views: give --scene (and the scene options it was "
-                         "trained with)")
+        raise ValueError(FINETUNE_NEEDS_SCENE)
     return [apply_attack(model, attack, ctx) for attack in attacks]

@@ -93,9 +93,10 @@ def score_release(model: SecureModel, views: KeyViews, reference: list[torch.Ten
     """SCORE_KEYS of a release opened with its key; None where a score does not apply.
 
     reference: hidden targets from ``reference_hidden`` (None: this is the reference itself, so
-    ``psnr_hidden``/``ssim_hidden`` are None); identical renders score PSNR_IDENTICAL. scene: the cover's data: its held-out views (the
-    training views without them) for ``psnr_public``/``ssim_public``, and the hidden images of
-    cameras named as the key's for ``psnr_hidden_truth``/``ssim_hidden_truth``.
+    ``psnr_hidden``/``ssim_hidden`` are None); identical renders score PSNR_IDENTICAL.
+    scene: the cover's data: its held-out views (the training views without them) for
+    ``psnr_public``/``ssim_public``, and the hidden images of cameras named as the key's for
+    ``psnr_hidden_truth``/``ssim_hidden_truth``.
     """
     device = model.device
     out = dict.fromkeys(SCORE_KEYS)
@@ -178,7 +179,8 @@ def write_sweep(out: Path, rows: list[dict], meta: dict) -> str:
                       + ["| " + " | ".join(fmt(r.get(c)) or "–" for c in columns) + " |" for r in rows])
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / "robustness.csv", lambda f: f.write(csv.encode()))
-    atomic_write(out / "robustness.json", lambda f: f.write(json.dumps({"meta": meta, "rows": rows}, indent=1).encode()))
+    data = json.dumps({"meta": meta, "rows": rows}, indent=1).encode()
+    atomic_write(out / "robustness.json", lambda f: f.write(data))
     atomic_write(out / "robustness.md", lambda f: f.write((table + "\n").encode()))
     return table
 

@@ -170,6 +170,13 @@ def test_robust_option_accepted_and_refused():
             SecureConfig(robust=bad)
 
 
+def test_hide_refuses_a_bad_robust_option_in_one_line(tmp_path, capsys):
+    assert main(["hide", "--out", str(tmp_path / "r"), "--robust", "noise-offset:0.1", *TINY]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "public offsets" in err and "\n" not in err
+    assert not (tmp_path / "r").exists()
+
+
 def test_perturb_draws_up_to_the_strength_and_keeps_rows():
     model = tiny_model(n=1000)
     view = perturb(model.anchors, parse_robust("prune-random:0.4+noise-feat:0.5"), torch.Generator().manual_seed(1))

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import torch
 
-from ..attacks import ATTACK_SYNTAX, AttackContext, parse_attacks
+from ..attacks import ATTACK_SYNTAX, FINETUNE_NEEDS_SCENE, AttackContext, parse_attacks
 from ..config import SceneSpec, TrainConfig, apply_overrides
 from ..io import save_scaffold
 from ..io.scaffold import MLP_FILES, POINT_CLOUD_FILE
@@ -54,8 +54,7 @@ def cmd_attack(args) -> int:
     common.quiet_warp()
     scene = scene_from(args)
     if scene is None and any(a.needs_scene for a in attacks):
-        raise CommandError("finetune needs the cover's training views: give --scene (and the scene options it was "
-                           "trained with)")
+        raise CommandError(FINETUNE_NEEDS_SCENE)
     passphrase = passphrase_from(args)
     out = RunFolder(args.out)
     if out.path.resolve() == Path(args.release).resolve():
