@@ -277,3 +277,19 @@ def test_sweep_rows_and_scores(container, scene):
     assert [r["spec"] for r in rows] == ["none", "prune-random:0.1", "prune-random:0.5"]
     assert rows[0]["psnr_hidden"] is None and rows[0]["bit_accuracy"] == score_release(model, views)["bit_accuracy"]
     assert rows[1]["anchors"] > rows[2]["anchors"] and rows[1]["psnr_hidden"] > rows[2]["psnr_hidden"]
+
+
+def test_sweep_files_and_plot(tmp_path):
+    pytest.importorskip("matplotlib")
+    from securegs_warp.robustness import plot_sweep, write_sweep
+
+    rows = [{"model": m, "attack": a, "spec": s, "strength": x, "psnr_hidden": None if a == "none" else 40.0 - 10 * x,
+             "ssim_hidden": None, "psnr_hidden_truth": 30.0 - x, "ssim_hidden_truth": 0.9, "bit_accuracy": 1.0,
+             "psnr_public": 28.0, "ssim_public": 0.9, "anchors": 100}
+            for m in ("a", "b") for a, s, x in (("none", "none", 0.0), ("prune-random", "prune-random:0.1", 0.1),
+                                               ("prune-random", "prune-random:0.2", 0.2), ("half", "half", 1.0))]
+    table = write_sweep(tmp_path, rows, {"seed": 0})
+    assert table.count("\n") == len(rows) + 1 and "| a | prune-random:0.1 | 39 |" in table
+    assert (tmp_path / "robustness.csv").read_text().splitlines()[0].startswith("model,spec,psnr_hidden")
+    plot_sweep(tmp_path / "r.png", rows)
+    assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
