@@ -103,5 +103,6 @@ def add_parsers(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random source of the attacks (default: 0)")
     p.add_argument("--json", action="store_true", help="print one JSON object: attacks, before, after")
     p.add_argument("--device", help="cpu or cuda[:N] (default: cuda when available)")
-    common.add_config_flags(p, SCENE_FLAGS)
+    # Without --scene nothing is scored against the cover's views or the true hidden views.
+    common.add_config_flags(p, SCENE_FLAGS, {"scene.source": "none"})
     p.set_defaults(func=cmd_attack, quiet=True)
