@@ -103,6 +103,9 @@ class SecureConfig:
     hdger: the paper's hybrid decoupled Gaussian encryption: hidden offsets come from the private
         MLP F_o†; False ("w/o HDGER", an ablation) stores explicit hidden offsets per anchor, which
         cannot be released.
+    robust: attacks the hidden branch trains against, joined with + (``secure.robust``:
+        ``prune-random:F``, ``noise-xyz:S``, ``noise-feat:S``, ``quantize:B``; strengths drawn each
+        step up to the given value); None: none. The public branch is untouched.
     strategy: the region-aware density strategy and its mode (rdo, scaffold, global, shared, cover).
     hidden_frame: where the private F_o† places hidden Gaussians (``PrivateHeads``): "anchor" (the
         paper: near their anchor) or "box" (anywhere in the hidden object's box, decoded from the
@@ -119,6 +122,7 @@ class SecureConfig:
     hidden_scaling_grad: float = 1.0
     feature_grad_until: float = 1.0
     hdger: bool = True
+    robust: str | None = None
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
     hidden_frame: str | None = None
     hidden_offsets: int | None = None
@@ -146,6 +150,10 @@ class SecureConfig:
                               ("feature_grad_until", "a fraction of the run")):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must lie in [0, 1] ({meaning}), got {getattr(self, name)}")
+        if self.robust is not None:
+            from .secure.robust import parse_robust  # the attacks module imports this one
+
+            parse_robust(self.robust)
 
 
 @dataclasses.dataclass(frozen=True)

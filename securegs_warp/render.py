@@ -26,7 +26,7 @@ def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, op
     Gaussians sit (default: the stored public offsets; SecureGS's hidden branch passes its private
     offset predictor). feature_grad, scaling_grad: see ``generate_neural_gaussians``. anchor_mask:
     [N] bool, the anchors to decode (default: those whose own footprint reaches the image; a decoder
-    that places Gaussians far from their anchor names its own).
+    that places Gaussians far from their anchor names its own, and robust training drops some).
 
     Returns dict: ``image`` [H, W, 3], ``alpha`` [H, W, 1], ``info`` (rasterize info),
     ``gaussians`` (generate_neural_gaussians output).

@@ -1,5 +1,6 @@
 """``securegs`` command line. train, render, eval, export: the Scaffold-GS engine (cli.train);
-hide, reveal, demo: SecureGS (cli.secure); audit: steganalysis (cli.audit); what they share:
+hide, reveal, demo: SecureGS (cli.secure); audit: steganalysis (cli.audit); attack: attacks on a
+release (cli.attack); what they share:
 cli.common."""
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import sys
 import time
 
 from ..keys import KeyFileError
-from . import audit, secure, train
+from . import attack, audit, secure, train
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -24,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_parsers(sub)
     secure.add_parsers(sub)
     audit.add_parsers(sub)
+    attack.add_parsers(sub)
     return parser
 
 

@@ -57,6 +57,9 @@ SECURE_FLAGS = (
                                           "object's box (everywhere with --mode global)"),
     ("--hidden-every", "secure.strategy.hidden_every", "RDO: accumulate ∇_hid every N steps (larger grows fewer "
                                                        "hidden-only anchors)"),
+    ("--robust", "secure.robust", "attacks the hidden payload trains against, joined with + (prune-random:F, "
+                                  "noise-xyz:S, noise-feat:S, quantize:B; strengths drawn each step up to these); the "
+                                  "cover's render is untouched"),
     ("--hidden-tau-scale", "secure.strategy.hidden_tau_scale",
      "RDO: anchors serving only the hidden payload grow at τ_fix times this (larger shows less of a hidden "
      "object's shape in the release and renders it less well)"),

@@ -132,7 +132,24 @@ def anchor_param_groups(model: "AnchorModel", lr: Mapping[str, float]) -> list[d
 # ----------------------------------------------------------------------------------------------
 
 
-class AnchorModel(nn.Module):
+class AnchorSizes:
+    """N, d and k of anything holding anchor tensors ``xyz`` [N, 3], ``feat`` [N, d] and
+    ``offsets`` [N, k, 3] (an ``AnchorModel``, robust training's ``PerturbedAnchors``)."""
+
+    @property
+    def num_anchors(self) -> int:
+        return self.xyz.shape[0]
+
+    @property
+    def feat_dim(self) -> int:
+        return self.feat.shape[1]
+
+    @property
+    def n_offsets(self) -> int:
+        return self.offsets.shape[1]
+
+
+class AnchorModel(AnchorSizes, nn.Module):
     """The anchors of one scene, as ``nn.Parameter`` attributes of an ``nn.Module``.
 
     Parameters (N anchors, k offsets, d feature channels), all float32 on one device:
@@ -208,18 +225,6 @@ class AnchorModel(nn.Module):
             opacity=inverse_sigmoid(torch.full((n, 1), INITIAL_OPACITY, device=device)),
             voxel_size=voxel_size,
         )
-
-    @property
-    def num_anchors(self) -> int:
-        return self.xyz.shape[0]
-
-    @property
-    def feat_dim(self) -> int:
-        return self.feat.shape[1]
-
-    @property
-    def n_offsets(self) -> int:
-        return self.offsets.shape[1]
 
     @property
     def param_names(self) -> tuple[str, ...]:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 
 from ..model import AnchorModel, ScaffoldHeads
-from ..model.neural_gaussians import AnchorViewInputs
+from ..model.neural_gaussians import AnchorViewInputs, visible_anchor_mask
 from ..rasterizer import RasterOptions
-from ..render import render_view
+from ..render import camera_tensors, render_view
 from ..scaffold_model import ScaffoldModel, decode_all
 from .heads import PrivateHeads
 
@@ -31,19 +31,36 @@ class SecureModel(ScaffoldModel):
         return self.private
 
     def render_hidden(self, camera, options: RasterOptions | None = None, *, background: torch.Tensor | None = None,
-                      camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0) -> dict:
+                      camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
+                      anchors=None) -> dict:
         """The hidden branch's render of a view (as ``ScaffoldModel.render``); needs the key.
 
         feature_grad, scaling_grad: the share of this render's gradient that reaches the public
         anchor features and scalings (training only; see ``generate_neural_gaussians``).
+        anchors: what to decode instead of this model's anchors: robust training's
+        ``PerturbedAnchors`` (same rows; its ``keep`` mask drops anchors from the render).
         """
         private = self._key()
         if private.decoder is None:
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
-        return render_view(self.anchors, private.decoder, camera, background, options, camera_index=camera_index,
+        anchors = self.anchors if anchors is None else anchors
+        return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
-                           anchor_mask=private.serving_mask(self.anchors.xyz))
+                           anchor_mask=self._decoding_mask(anchors, camera))
+
+    def _decoding_mask(self, anchors, camera) -> torch.Tensor | None:
+        """[N] bool, the anchors whose hidden Gaussians are decoded for ``camera``: the box frame's
+        serving anchors, else the visible ones (None: render_view's visibility test), less those
+        robust training drops (``PerturbedAnchors.keep``)."""
+        mask = self.private.serving_mask(anchors.xyz)
+        keep = getattr(anchors, "keep", None)
+        if keep is None:
+            return mask
+        if mask is None:
+            viewmat, K = camera_tensors(camera, anchors.xyz.device)
+            mask = visible_anchor_mask(anchors, viewmat, K, camera.width, camera.height)
+        return mask & keep
 
     @torch.no_grad()
     def hidden_gaussians(self, camera) -> dict:

@@ -20,6 +20,7 @@ from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
 from .model import SecureModel
 from .payload import BIT_WEIGHT, PayloadSpec, build_payload
+from .robust import parse_robust, perturb, public_opacity
 
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
 # branch scores at or below it; a learnt one, tens of dB above on the mug).
@@ -38,6 +39,7 @@ class SecureTrainer(ScaffoldTrainer):
     def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
         self.secure = secure
         self.spec = PayloadSpec.parse(secure.payload)
+        self.robust = parse_robust(secure.robust) if secure.robust else []
         # Built before the model, so that a payload the scene cannot carry fails before training.
         self.payload = build_payload(self.spec, scene, torch.device(device))
         if secure.hidden_weight is not None:
@@ -73,12 +75,13 @@ class SecureTrainer(ScaffoldTrainer):
 
     # -- rendering ------------------------------------------------------------------------------
 
-    def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None) -> dict:
+    def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None,
+                      anchors=None) -> dict:
         """The hidden branch's render of a view, with the gradient shares of training ``step``
-        (default: the step counter)."""
+        (default: the step counter); ``anchors``: robust training's perturbed anchors."""
         return self.model.render_hidden(cam, self.config.raster, background=self.payload.background,
                                         camera_index=camera_index, feature_grad=self.current_feature_grad(step),
-                                        scaling_grad=self.secure.hidden_scaling_grad)
+                                        scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors)
 
     def current_feature_grad(self, step: int | None = None) -> float:
         """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
@@ -89,15 +92,21 @@ class SecureTrainer(ScaffoldTrainer):
 
     def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
         p, extra = self.payload, {}
+        # Robust training: this step's hidden branch (render and bits) reads randomly attacked anchors.
+        anchors = perturb(self.model.anchors, self.robust, self.generator,
+                          public_opacity(branches["public"][0], self.model.anchors)) if self.robust else None
         view = index if p.views is not None else p.image_view
         if view is not None:
-            out = self.render_hidden(self.scene.train[view], camera_index=view, step=step)
+            out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors)
             target = p.views[view] if p.views is not None else p.image
             loss = loss + p.weight * self.image_loss(out, target)
             branches["hidden"] = (out["gaussians"], out["info"])
             extra["psnr_hidden"] = psnr(out["image"].detach(), target)
         if p.bits is not None:
-            logits = self.model.private.bit_logits(self.model.anchors.feat)
+            feat = self.model.anchors.feat
+            if anchors is not None:
+                feat = anchors.feat if anchors.keep is None else anchors.feat[anchors.keep]
+            logits = self.model.private.bit_logits(feat)
             loss = loss + BIT_WEIGHT * F.binary_cross_entropy_with_logits(logits, p.bits.expand_as(logits))
         return loss, extra
 

@@ -62,6 +62,13 @@ class ScaffoldTrainer:
     def _make_model(self, anchors, heads) -> ScaffoldModel:
         return ScaffoldModel(anchors, heads)
 
+    def start_from(self, model: ScaffoldModel) -> None:
+        """Train ``model`` (its anchors and public heads, in place) instead of the fresh one, with a
+        fresh optimizer and strategy state: fine-tuning a saved release."""
+        self.model = model
+        self.optimizer = self._make_optimizer()
+        self.strategy_state = self.strategy.initialize_state(model.anchors)
+
     # -- optimisation ---------------------------------------------------------------------------
 
     def _mlp_schedule(self, group_name: str) -> tuple:

@@ -1,0 +1,79 @@
+"""Robustness sweep: every attack of ``securegs attack`` at 4–5 strengths on one or more containers.
+
+Each RUN is a ``securegs hide`` run folder (its release, key and config.json, from which the scene
+is rebuilt for the cover's views and the true hidden views). Without a RUN, a small container is
+trained first (the demo's budget: object + 48 bits, 400 iterations, on the built-in scene). Writes
+robustness.csv / .json / .md and robustness.png (one panel per attack: hidden PSNR and bit accuracy
+against strength, a line per container, its unattacked level dashed) into --out.
+
+    python scripts/robustness.py runs/demo runs/robust --labels default,robust --out runs/robustness
+    python scripts/robustness.py --out runs/robustness          # trains runs/robustness/container first
+    python scripts/robustness.py RUN --attacks prune-random,noise-feat
+
+The PNG needs matplotlib (``pip install -e ".[plots]"``).
+"""
+import argparse
+import time
+from pathlib import Path
+
+import torch
+
+from securegs_warp.cli import main as securegs
+from securegs_warp.cli.common import quiet_warp
+from securegs_warp.config import RunConfig, from_dict
+from securegs_warp.robustness import SWEEP, KeyViews, plot_sweep, sweep, write_sweep
+from securegs_warp.runs import RunFolder
+from securegs_warp.secure.container import PLAIN_KEY, open_container
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="*", help="securegs hide run folders (default: train one into OUT/container)")
+    ap.add_argument("--labels", help="comma-separated names of the runs (default: the folder names)")
+    ap.add_argument("--attacks", default=",".join(SWEEP), help=f"attacks to sweep (default: all: {','.join(SWEEP)})")
+    ap.add_argument("--seed", type=int, default=0, help="random source of the attacks")
+    ap.add_argument("--out", default="runs/robustness")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    quiet_warp()
+    out = Path(args.out)
+    runs = [Path(r) for r in args.runs]
+    if not runs:
+        runs = [out / "container"]
+        if securegs(["hide", "--payload", "object+bits:48", "--iterations", "400", "--out", str(runs[0]), "--quiet",
+                     "--device", "cpu", *(["--resume"] if (runs[0] / "config.json").is_file() else [])]) != 0:
+            raise SystemExit("training the container failed")
+    labels = args.labels.split(",") if args.labels else [r.name for r in runs]
+    if len(labels) != len(runs):
+        raise SystemExit(f"--labels names {len(labels)} runs, {len(runs)} given")
+    unknown = sorted(set(args.attacks.split(",")) - set(SWEEP))
+    if unknown:
+        raise SystemExit(f"unknown attacks {unknown}; known: {', '.join(SWEEP)}")
+    configs = [from_dict(RunConfig, RunFolder(r).read_config()) for r in runs]
+    if len({c.scene for c in configs}) != 1:
+        raise SystemExit("the runs were trained on different scenes; sweep them separately")
+    scene = configs[0].scene.load()
+    models, views = {}, {}
+    for label, run in zip(labels, runs):
+        models[label], meta = open_container(run / "public", run / PLAIN_KEY)
+        views[label] = KeyViews.from_metadata(meta, "cpu")
+    meta = {"runs": [str(r) for r in runs], "labels": labels, "seed": args.seed, "date": time.strftime("%Y-%m-%d"),
+            "device": "cpu"}
+    rows = []
+
+    def report(row):
+        rows.append(row)
+        print(row["model"], row["spec"], {k: v for k, v in row.items() if k in ("psnr_hidden", "psnr_hidden_truth",
+                                                                             "bit_accuracy", "psnr_public")},
+              flush=True)
+        write_sweep(out, rows, meta)
+
+    sweep(models, views, scene, {name: SWEEP[name] for name in args.attacks.split(",")}, seed=args.seed,
+          train=configs[0].train, on_row=report)
+    print(write_sweep(out, rows, meta))
+    plot_sweep(out / "robustness.png", rows)
+    print(f"wrote {out / 'robustness.png'}")
+
+
+if __name__ == "__main__":
+    main()

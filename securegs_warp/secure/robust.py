@@ -1,0 +1,105 @@
+"""Robust training: the hidden branch trains on randomly attacked copies of the anchors, so that the
+payload survives those attacks on the release (``SecureConfig.robust``).
+
+A robust spec joins attack specs with ``+`` (``prune-random:0.3+noise-feat:0.2+quantize:8``); each
+step draws a strength for each of them: a fraction or σ uniformly in [0, the given value], and for
+``quantize:B`` a bit depth uniformly in B..16. Only attacks on what the hidden branch reads are
+offered: anchor dropout at random (``prune-random``) or of the anchors with the least public
+opacity (``prune-opacity``: among the anchors the step's public render decoded, by the total opacity
+of their public Gaussians in that view), noise on positions and features, quantisation of positions,
+features and scalings. The hidden branch never reads the public offsets, so
+``noise-offset`` has nothing to train against. The perturbed anchors feed the hidden render and the
+bit loss only; the public render reads the anchors themselves, so the cover is trained as before.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from ..attacks import Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
+from ..model.anchors import AnchorSizes
+
+ROBUST_ATTACKS = ("prune-random", "prune-opacity", "noise-xyz", "noise-feat", "quantize")
+QUANTIZE_MAX_BITS = 16
+
+
+def parse_robust(text: str) -> list[Attack]:
+    """``A+B+...`` -> attacks; refuses unknown specs, repeats and attacks the hidden branch cannot
+    train against, in one line naming the ones it can."""
+    attacks = [Attack.parse(part) for part in text.split("+")]
+    for attack in attacks:
+        if attack.name not in ROBUST_ATTACKS:
+            why = " (the hidden branch does not read the public offsets)" if attack.name == "noise-offset" else ""
+            raise ValueError(f"robust: {attack.text} cannot be trained against{why}; use "
+                             f"{', '.join(ROBUST_ATTACKS)} joined with +")
+    names = [a.name for a in attacks]
+    if len(set(names)) != len(names):
+        raise ValueError(f"robust {text!r} names an attack twice")
+    return attacks
+
+
+@dataclasses.dataclass
+class PerturbedAnchors(AnchorSizes):
+    """What the hidden decoding reads of an ``AnchorModel``, perturbed for one step. Tensors are N
+    rows (the anchors' own N: dropout is ``keep``, not removal, so indices match the model's).
+    Gradients flow through the perturbations to the model's parameters.
+
+    xyz [N, 3], feat [N, d], offsets [N, k, 3], scaling [N, 6], rotation [N, 4], opacity [N, 1];
+    keep: [N] bool, the anchors this step's hidden branch may use (None: all).
+    """
+
+    xyz: torch.Tensor
+    feat: torch.Tensor
+    offsets: torch.Tensor
+    scaling: torch.Tensor
+    rotation: torch.Tensor
+    opacity: torch.Tensor
+    keep: torch.Tensor | None = None
+
+
+def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
+            public_opacity: torch.Tensor | None = None) -> PerturbedAnchors:
+    """One draw of ``attacks`` (from ``parse_robust``) on an ``AnchorModel``'s tensors, in order.
+
+    public_opacity: [N] total public opacity of each anchor in this step's view, NaN for anchors
+    the view did not decode (needed by ``prune-opacity``)."""
+    view = PerturbedAnchors(anchors.xyz, anchors.feat, anchors.offsets, anchors.scaling, anchors.rotation,
+                            anchors.opacity)
+    for attack in attacks:
+        u = float(torch.rand((), generator=generator))
+        if attack.name.startswith("prune-"):
+            if attack.name == "prune-random":
+                dropped = random_prune_mask(view.num_anchors, u * attack.args[0], generator, view.xyz.device)
+            else:
+                dropped = _least_opaque(public_opacity, u * attack.args[0])
+            view.keep = ~dropped if view.keep is None else view.keep & ~dropped
+        elif attack.name in ("noise-xyz", "noise-feat"):
+            name = attack.name.removeprefix("noise-")
+            values = getattr(view, name)
+            setattr(view, name, values + column_noise(values, u * attack.args[0], generator))
+        else:  # quantize: straight through, so the parameters still get the gradient of the quantised values
+            bits = attack.args[0] + int(u * (QUANTIZE_MAX_BITS - attack.args[0] + 1))
+            for name in ("xyz", "feat", "scaling"):
+                values = getattr(view, name)
+                setattr(view, name, values + (quantize_columns(values.detach(), min(bits, QUANTIZE_MAX_BITS))
+                                              - values.detach()))
+    return view
+
+
+def _least_opaque(public_opacity: torch.Tensor, fraction: float) -> torch.Tensor:
+    """[N] bool: the round(fraction·V) anchors of least ``public_opacity`` [N] among the V that are
+    not NaN."""
+    decoded = (~torch.isnan(public_opacity)).nonzero()[:, 0]
+    dropped = torch.zeros_like(public_opacity, dtype=torch.bool)
+    dropped[decoded[lowest_mask(public_opacity[decoded], fraction)]] = True
+    return dropped
+
+
+@torch.no_grad()
+def public_opacity(gaussians: dict, anchors) -> torch.Tensor:
+    """[N] total opacity of each anchor's public Gaussians in one render (``generate_neural_gaussians``
+    output ``gaussians``: negative opacities count as 0), NaN for anchors the render did not decode."""
+    total = torch.full((anchors.num_anchors,), float("nan"), device=anchors.xyz.device)
+    total[gaussians["visible_mask"]] = gaussians["neural_opacity"].clamp_min(0.0).view(-1, anchors.n_offsets).sum(1)
+    return total

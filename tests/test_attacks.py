@@ -1,0 +1,295 @@
+"""Attacks on a release (securegs_warp.attacks), their scores (robustness), ``securegs attack`` and
+robust training (SecureConfig.robust)."""
+import json
+
+import pytest
+import torch
+
+from securegs_warp import attacks as A
+from securegs_warp.cli import main
+from securegs_warp.config import SecureConfig, TrainConfig
+from securegs_warp.data import make_synthetic_scene
+from securegs_warp.model import AnchorModel, ScaffoldHeads
+from securegs_warp.rasterizer import RasterOptions
+from securegs_warp.robustness import KeyViews, score_release, sweep
+from securegs_warp.scaffold_model import ScaffoldModel
+from securegs_warp.secure import SecureTrainer
+from securegs_warp.secure.container import open_container
+from securegs_warp.secure.robust import PerturbedAnchors, parse_robust, perturb
+
+CPU_RASTER = RasterOptions(tile_size=8)
+TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
+
+
+def tiny_model(n=200, d=8, k=4, seed=0) -> ScaffoldModel:
+    g = torch.Generator().manual_seed(seed)
+    anchors = AnchorModel(xyz=torch.rand(n, 3, generator=g) * 2 - 1, feat=torch.randn(n, d, generator=g),
+                          offsets=torch.randn(n, k, 3, generator=g) * 0.1, scaling=torch.full((n, 6), -2.5),
+                          rotation=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), opacity=torch.zeros(n, 1))
+    torch.manual_seed(seed)
+    return ScaffoldModel(anchors, ScaffoldHeads(d, k))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_synthetic_scene(hidden="mug", level="object", width=24, height=18, n_train=4, n_test=2, n_points=300)
+
+
+def ctx(scene, seed=0):
+    return A.AttackContext(scene.test, CPU_RASTER, None, torch.Generator().manual_seed(seed))
+
+
+@pytest.mark.parametrize("text", ["prune", "prune-random", "prune-random:1", "prune-random:-0.1", "noise-feat:x",
+                                  "sor:16", "sor:0:2", "quantize:0", "quantize:17", "half:1", "finetune:2.5",
+                                  "noise-xyz:nan", ""])
+def test_bad_specs_are_refused_listing_the_valid_ones(text):
+    with pytest.raises(ValueError, match="valid: prune-random:F, prune-opacity:F") as e:
+        A.Attack.parse(text)
+    assert "\n" not in str(e.value)
+
+
+def test_specs_parse_to_typed_arguments():
+    assert A.Attack.parse("sor:16:1.5") == A.Attack("sor", (16, 1.5))
+    assert A.Attack.parse("quantize:8").args == (8,) and A.Attack.parse("half").args == ()
+    assert A.Attack.parse("prune-random:0.2").text == "prune-random:0.2"
+    assert [a.changes_heads for a in A.parse_attacks(["half", "finetune:3", "noise-feat:0.1"])] == [True, True, False]
+    with pytest.raises(ValueError, match="no attack"):
+        A.parse_attacks([])
+
+
+@pytest.mark.parametrize("name", ["prune-random", "prune-opacity", "purify"])
+def test_pruning_attacks_remove_the_fraction(scene, name):
+    model = tiny_model()
+    report = A.apply_attack(model, A.Attack.parse(f"{name}:0.25"), ctx(scene))
+    assert (report["anchors_before"], report["anchors_after"]) == (200, 150)
+    assert model.anchors.feat.shape == (150, 8) and model.anchors.offsets.shape == (150, 4, 3)
+
+
+def test_prune_opacity_removes_the_most_transparent_anchors(scene):
+    model = tiny_model()
+    opacity = A.anchor_opacity(model, scene.test)
+    A.apply_attack(model, A.Attack.parse("prune-opacity:0.5"), ctx(scene))
+    assert model.anchors.num_anchors == 100
+    assert float(A.anchor_opacity(model, scene.test).min()) >= float(opacity.median()) - 1e-6
+
+
+def test_anchor_contribution_sums_alpha_weights(scene):
+    """Σ over anchors of T·α over the pixels is the rendered alpha summed over the image."""
+    model = tiny_model()
+    cam = scene.test[0]
+    total = A.anchor_contribution(model, [cam], CPU_RASTER).sum()
+    with torch.no_grad():
+        alpha = model.render(cam, CPU_RASTER)["alpha"].sum()
+    assert float(alpha) > 1.0
+    assert float(total) == pytest.approx(float(alpha), rel=1e-3)
+
+
+def test_purify_prunes_an_isolated_transparent_cluster_first(scene):
+    model = tiny_model()
+    with torch.no_grad():  # 20 anchors far from the rest, with features that decode no opacity
+        model.anchors.xyz[:20] = torch.tensor([30.0, 30.0, 30.0]) + torch.rand(20, 3)
+    mask = A.purify_mask(model, scene.test, 0.1, CPU_RASTER)
+    assert mask[:20].all() and int(mask.sum()) == 20
+
+
+def test_noise_scale_is_relative_to_each_column(scene):
+    model = tiny_model(n=4000)
+    with torch.no_grad():
+        model.anchors.feat[:, 0] *= 10.0
+    before = model.anchors.feat.detach().clone()
+    A.apply_attack(model, A.Attack.parse("noise-feat:0.1"), ctx(scene))
+    delta_std = (model.anchors.feat.detach() - before).std(dim=0) / before.std(dim=0)
+    assert torch.allclose(delta_std, torch.full_like(delta_std, 0.1), rtol=0.1)
+    xyz, offsets = model.anchors.xyz.detach().clone(), model.anchors.offsets.detach().clone()
+    A.apply_attack(model, A.Attack.parse("noise-xyz:0"), ctx(scene))
+    assert torch.equal(model.anchors.xyz, xyz) and torch.equal(model.anchors.offsets, offsets)
+
+
+def test_quantize_leaves_2_to_the_b_levels_per_column(scene):
+    model = tiny_model(n=500)
+    xyz = model.anchors.xyz.detach().clone()
+    A.apply_attack(model, A.Attack.parse("quantize:3"), ctx(scene))
+    for c in range(3):
+        assert 2 < len(torch.unique(model.anchors.xyz[:, c])) <= 8
+    step = (xyz.max(0).values - xyz.min(0).values) / 7
+    assert ((model.anchors.xyz - xyz).abs() <= step / 2 + 1e-6).all()
+    assert torch.equal(model.anchors.scaling, torch.full((500, 6), -2.5))  # a constant column stays
+
+
+def test_half_rounds_anchors_and_mlps_to_float16(scene):
+    model = tiny_model()
+    A.apply_attack(model, A.Attack.parse("half"), ctx(scene))
+    for t in (model.anchors.feat, model.heads.opacity_mlp[0].weight):
+        assert t.dtype == torch.float32 and torch.equal(t, t.half().float())
+
+
+def test_sor_removes_the_far_points():
+    xyz = torch.cat([torch.rand(100, 3), torch.tensor([[10.0, 10, 10], [-9.0, 0, 0]])])
+    mask = A.sor_mask(xyz, 8, 2.0)
+    assert mask[-2:].all() and not mask[:-2].any()
+
+
+def test_attacks_compose_left_to_right(scene):
+    """Pruning after quantisation keeps quantised values; quantising after pruning re-spreads the levels
+    over the survivors' range: the two orders give different models."""
+    one, two = tiny_model(), tiny_model()
+    A.apply_attacks(one, A.parse_attacks(["quantize:2", "prune-random:0.5"]), ctx(scene))
+    A.apply_attacks(two, A.parse_attacks(["prune-random:0.5", "quantize:2"]), ctx(scene))
+    assert one.anchors.num_anchors == two.anchors.num_anchors == 100
+    assert all(len(torch.unique(one.anchors.feat[:, c])) <= 4 for c in range(8))
+    assert not torch.equal(one.anchors.feat, two.anchors.feat)
+
+
+def test_export_roundtrip_is_not_applicable_and_finetune_needs_the_scene(scene):
+    model = tiny_model()
+    report = A.apply_attack(model, A.Attack.parse("export-roundtrip"), ctx(scene))
+    assert report["applicable"] is False and "3DGS PLY" in report["reason"] and model.anchors.num_anchors == 200
+    with pytest.raises(ValueError, match="--scene"):
+        A.apply_attacks(model, A.parse_attacks(["finetune:2"]), ctx(scene))
+
+
+def test_finetune_changes_the_public_mlps_only_through_training(scene):
+    model = tiny_model(d=32, k=10)
+    before = model.heads.color_mlp[0].weight.detach().clone()
+    context = A.AttackContext(scene.test, CPU_RASTER, None, torch.Generator().manual_seed(0), scene,
+                              TrainConfig(iterations=1))
+    A.apply_attack(model, A.Attack.parse("finetune:2"), context)
+    assert not torch.equal(model.heads.color_mlp[0].weight, before) and model.anchors.num_anchors == 200
+
+
+# ---------------------------------------------------------------------------------------------
+# Robust training
+# ---------------------------------------------------------------------------------------------
+
+
+def test_robust_option_accepted_and_refused():
+    assert SecureConfig(robust="prune-random:0.3+noise-feat:0.2+quantize:8").robust
+    for bad, why in (("noise-offset:0.1", "public offsets"), ("sor:8:1", "cannot be trained against"),
+                     ("prune-random:0.3+prune-random:0.1", "twice"), ("noise:0.1", "valid:")):
+        with pytest.raises(ValueError, match=why):
+            SecureConfig(robust=bad)
+
+
+def test_hide_refuses_a_bad_robust_option_in_one_line(tmp_path, capsys):
+    assert main(["hide", "--out", str(tmp_path / "r"), "--robust", "noise-offset:0.1", *TINY]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "public offsets" in err and "\n" not in err
+    assert not (tmp_path / "r").exists()
+
+
+def test_perturb_draws_up_to_the_strength_and_keeps_rows():
+    model = tiny_model(n=1000)
+    view = perturb(model.anchors, parse_robust("prune-random:0.4+noise-feat:0.5"), torch.Generator().manual_seed(1))
+    assert isinstance(view, PerturbedAnchors) and view.num_anchors == 1000
+    dropped = int((~view.keep).sum())
+    assert 0 < dropped <= 400
+    assert view.xyz is model.anchors.xyz
+    assert 0 < float((view.feat - model.anchors.feat).detach().std() / model.anchors.feat.detach().std()) <= 0.5
+    view.feat.sum().backward()  # noise is additive: the parameter gets the perturbed values' gradient
+    assert torch.equal(model.anchors.feat.grad, torch.ones_like(model.anchors.feat))
+
+
+def test_robust_prune_opacity_drops_the_least_opaque_decoded_anchors():
+    model = tiny_model(n=10)
+    opacity = torch.tensor([5.0, 1.0, float("nan"), 3.0, 0.5, 4.0, float("nan"), 2.0, 6.0, 7.0])
+    g = torch.Generator().manual_seed(0)
+    while True:  # the fraction is drawn in [0, 0.5]: wait for a draw that drops 2 of the 8 decoded
+        view = perturb(model.anchors, parse_robust("prune-opacity:0.5"), g, opacity)
+        if int((~view.keep).sum()) == 2:
+            break
+    assert (~view.keep).nonzero()[:, 0].tolist() == [1, 4]
+
+
+def test_mean_neighbour_distance_among_a_subset():
+    xyz = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [10.0, 0, 0]])
+    among = torch.tensor([True, True, False, False])
+    assert A.mean_neighbour_distance(xyz, 1, among).tolist() == [1.0, 1.0, 2.0, 9.0]
+    assert A.mean_neighbour_distance(xyz, 1).tolist() == [1.0, 1.0, 2.0, 7.0]
+
+
+def test_robust_training_perturbs_only_the_hidden_branch(scene, monkeypatch):
+    import securegs_warp.scaffold_model as scaffold_model
+    import securegs_warp.secure.model as secure_model
+
+    seen = {}
+    for module, branch in ((scaffold_model, "public"), (secure_model, "hidden")):
+        real = module.render_view
+
+        def spy(anchors, *args, real=real, branch=branch, **kwargs):
+            seen[branch] = (anchors, kwargs.get("anchor_mask"))
+            return real(anchors, *args, **kwargs)
+
+        monkeypatch.setattr(module, "render_view", spy)
+    trainer = SecureTrainer(scene, TrainConfig(iterations=2, raster=CPU_RASTER),
+                            SecureConfig(payload="object+bits:8", robust="prune-random:0.5+noise-feat:0.3"))
+    trainer.step()
+    public, hidden = seen["public"], seen["hidden"]
+    assert public == (trainer.model.anchors, None)
+    assert isinstance(hidden[0], PerturbedAnchors) and hidden[1] is hidden[0].keep
+    assert not torch.equal(hidden[0].feat.detach(), trainer.model.anchors.feat.detach())
+
+
+# ---------------------------------------------------------------------------------------------
+# Scores and the command line
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def container(tmp_path_factory):
+    out = tmp_path_factory.mktemp("attack") / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "3", "--quiet", "--payload", "object+bits:0b1011",
+                 "--device", "cpu", *TINY]) == 0
+    return out
+
+
+def test_attack_cli_json(container, tmp_path, capsys):
+    args = ["attack", str(container / "public"), "--key", str(container / "key.safetensors"), "--attack",
+            "prune-random:0.2", "--attack", "half", "--out", str(tmp_path / "a"), "--json", "--device", "cpu",
+            "--scene", "synthetic", "--hide", "mug", *TINY]
+    capsys.readouterr()
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [r["attack"] for r in result["attacks"]] == ["prune-random:0.2", "half"]
+    for part in ("before", "after"):
+        assert {"psnr_hidden", "ssim_hidden", "bit_accuracy", "psnr_public", "psnr_hidden_truth"} <= set(result[part])
+    assert result["before"]["psnr_hidden"] is None and result["after"]["psnr_hidden"] > 0
+    assert result["after"]["anchors"] == result["before"]["anchors"] - round(0.2 * result["before"]["anchors"])
+    assert result["fingerprint_matches"] is False and 0 <= result["after"]["bit_accuracy"] <= 1
+    assert (tmp_path / "a" / "point_cloud.ply").is_file()
+    # the key refuses the half-precision release everywhere else
+    with pytest.raises(Exception, match="another|container"):
+        open_container(tmp_path / "a", container / "key.safetensors")
+    assert main(args) == 2  # --out holds a release now: --force replaces it
+    assert main(args + ["--force"]) == 0
+
+
+def test_attack_cli_refuses_bad_specs(container, capsys):
+    code = main(["attack", str(container / "public"), "--key", str(container / "key.safetensors"),
+                 "--attack", "prune:0.2"])
+    assert code == 2 and "valid: prune-random:F" in capsys.readouterr().err
+
+
+def test_sweep_rows_and_scores(container, scene):
+    model, meta = open_container(container / "public", container / "key.safetensors")
+    views = KeyViews.from_metadata(meta, "cpu")
+    assert views.message.tolist() == [1, 0, 1, 1]
+    rows = sweep({"c": model}, {"c": views}, None, {"prune-random": ["prune-random:0.1", "prune-random:0.5"]})
+    assert [r["spec"] for r in rows] == ["none", "prune-random:0.1", "prune-random:0.5"]
+    assert rows[0]["psnr_hidden"] is None and rows[0]["bit_accuracy"] == score_release(model, views)["bit_accuracy"]
+    assert rows[1]["anchors"] > rows[2]["anchors"] and rows[1]["psnr_hidden"] > rows[2]["psnr_hidden"]
+
+
+def test_sweep_files_and_plot(tmp_path):
+    pytest.importorskip("matplotlib")
+    from securegs_warp.robustness import plot_sweep, write_sweep
+
+    rows = [{"model": m, "attack": a, "spec": s, "strength": x, "psnr_hidden": None if a == "none" else 40.0 - 10 * x,
+             "ssim_hidden": None, "psnr_hidden_truth": 30.0 - x, "ssim_hidden_truth": 0.9, "bit_accuracy": 1.0,
+             "psnr_public": 28.0, "ssim_public": 0.9, "anchors": 100}
+            for m in ("a", "b") for a, s, x in (("none", "none", 0.0), ("prune-random", "prune-random:0.1", 0.1),
+                                               ("prune-random", "prune-random:0.2", 0.2), ("half", "half", 1.0))]
+    table = write_sweep(tmp_path, rows, {"seed": 0})
+    assert table.count("\n") == len(rows) + 1 and "| a | prune-random:0.1 | 39 |" in table
+    assert (tmp_path / "robustness.csv").read_text().splitlines()[0].startswith("model,spec,psnr_hidden")
+    plot_sweep(tmp_path / "r.png", rows)
+    assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
