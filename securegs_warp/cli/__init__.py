@@ -1,5 +1,6 @@
 """``securegs`` command line. train, render, eval, export: the Scaffold-GS engine (cli.train);
-hide, reveal, demo: SecureGS (cli.secure); what they share: cli.common."""
+hide, reveal, demo: SecureGS (cli.secure); verify: whether a release carries a key's message
+(cli.verify); what they share: cli.common."""
 from __future__ import annotations
 
 import argparse
@@ -7,7 +8,7 @@ import sys
 import time
 
 from ..keys import KeyFileError
-from . import secure, train
+from . import secure, train, verify
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,6 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     train.add_parsers(sub)
     secure.add_parsers(sub)
+    verify.add_parsers(sub)
     return parser
 
 

@@ -51,14 +51,19 @@ def save_container(out: str | Path, model: SecureModel, metadata: dict,
 
 
 def open_container(public: str | Path, key: str | Path | None = None, passphrase: str | None = None,
-                   device="cpu") -> tuple[SecureModel, dict]:
+                   device="cpu", check_fingerprint: bool = True) -> tuple[SecureModel, dict]:
     """Load a release and, with its key, the private heads: (model, the key's metadata). Without a
     key the model has ``private=None`` and the metadata is empty. A key for another release, a
-    wrong passphrase or a modified key raise ``KeyFileError`` (never a garbage render)."""
+    wrong passphrase or a modified key raise ``KeyFileError`` (never a garbage render).
+
+    check_fingerprint=False is for ``verify`` only: it asks whether a release carries the key's
+    message, and a release the key was not made for (its public MLPs differ) must get an answer
+    ("absent", with its p-value), not a refusal. Everything else refuses such a pair."""
     anchors, heads = load_scaffold(public, device=device)
     if key is None:
         return SecureModel(anchors, heads, None), {}
-    tensors, metadata = load_key(key, passphrase, expected_fingerprint=release_fingerprint(heads))
+    expected = release_fingerprint(heads) if check_fingerprint else None
+    tensors, metadata = load_key(key, passphrase, expected_fingerprint=expected)
     try:
         private = PrivateHeads(heads, **metadata["heads"]).to(device)
         private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})

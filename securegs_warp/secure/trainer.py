@@ -18,8 +18,9 @@ from ..data import Camera, SceneData
 from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
+from .keyed_bits import new_seed
 from .model import SecureModel
-from .payload import BIT_WEIGHT, PayloadSpec, build_payload
+from .payload import PayloadSpec, build_payload, message_string
 
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
 # branch scores at or below it; a learnt one, tens of dB above on the mug).
@@ -40,14 +41,17 @@ class SecureTrainer(ScaffoldTrainer):
         self.payload = build_payload(self.spec, scene, torch.device(device))
         if secure.hidden_weight is not None:
             self.payload.weight = float(secure.hidden_weight)
+        # The bit decoder's seed is secret like the message (not from the training seed, which
+        # config.json records); a checkpoint keeps both.
+        self.bit_seed = new_seed() if self.payload.bits is not None else None
         strategy = secure.strategy.scaled_to(config.iterations)
         strategy.hidden_weight = self.payload.weight  # ∇_hid per unit of ℓ_hid (RegionAwareStrategy)
         strategy.use_bbox = self.spec.kind in ("object", "image")
         super().__init__(scene, config, device=device, strategy=strategy)
 
     def _make_model(self, anchors, heads) -> SecureModel:
-        private = PrivateHeads(heads, bits=self.spec.bits, offsets=self.secure.hdger,
-                               hidden=self.payload.has_images).to(anchors.xyz.device)
+        private = PrivateHeads(heads, message=message_string(self.payload.bits), bit_seed=self.bit_seed,
+                               offsets=self.secure.hdger, hidden=self.payload.has_images).to(anchors.xyz.device)
         if private.decoder is not None and not self.secure.hdger:
             anchors.add_hidden_offsets()
         return SecureModel(anchors, heads, private)
@@ -86,8 +90,10 @@ class SecureTrainer(ScaffoldTrainer):
             branches["hidden"] = (out["gaussians"], out["info"])
             extra["psnr_hidden"] = psnr(out["image"].detach(), target)
         if p.bits is not None:
-            logits = self.model.private.bit_logits(self.model.anchors.feat)
-            loss = loss + BIT_WEIGHT * F.binary_cross_entropy_with_logits(logits, p.bits.expand_as(logits))
+            # A hinge, not BCE: once an anchor's vote clears the margin it stops pulling on a
+            # feature the cover needs (with BCE, Adam keeps stepping on the vanishing gradient).
+            logits, bit = self.model.private.bit_logits(self.model.anchors.feat, self.model.anchors.xyz)
+            loss = loss + self.secure.bit_weight * F.relu(1.0 - (2.0 * p.bits[bit] - 1.0) * logits).mean()
         return loss, extra
 
     # -- evaluation -----------------------------------------------------------------------------
@@ -122,30 +128,36 @@ class SecureTrainer(ScaffoldTrainer):
             cams = self.scene.test or self.scene.train
             out["fps_hidden"] = evaluation.render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:
+            anchors = self.model.anchors
             out["bit_accuracy"] = self.bit_accuracy()
+            # One bit per anchor: a message longer than a model's anchors can carry reads 0 where no
+            # anchor votes.
+            out["bits_without_voters"] = int((self.model.private.bits.vote(anchors.feat, anchors.xyz)[1] == 0).sum())
         return out
 
     @torch.no_grad()
-    def bit_accuracy(self, feat: torch.Tensor | None = None) -> float | None:
-        """The fraction of the hidden message the key's bit head reads from anchor features [N, d]:
-        this container's by default, or another model's (a plain Scaffold-GS model's features show
-        whether the head would "find" the message where it never was; 0.5 is chance). None
-        without a bit payload."""
+    def bit_accuracy(self, anchors=None) -> float | None:
+        """The fraction of the hidden message the key's bit decoder reads from ``anchors`` (an
+        ``AnchorModel``): this container's by default, or another model's (on a model trained
+        without this key it is a fair coin per bit: 0.5 on average). None without a bit payload."""
         if self.payload.bits is None:
             return None
-        decoded = self.model.decode_bits(feat)
+        decoded = self.model.decode_bits(anchors)
         return float((decoded == self.payload.bits.long()).float().mean())
 
     # -- checkpoints ----------------------------------------------------------------------------
 
     def checkpoint_state(self) -> dict:
         state = {**super().checkpoint_state(), "private": self.model.private.state_dict()}
-        if self.payload.bits is not None:  # drawn at random when the run began: resuming keeps it
+        if self.payload.bits is not None:  # drawn at random when the run began: resuming keeps them
             state["message"] = self.payload.bits.detach().cpu()
+            state["bit_seed"] = self.bit_seed
         return state
 
     def restore(self, state: dict, path) -> None:
         super().restore(state, path)
         self.model.private.load_state_dict(state["private"])
         if self.payload.bits is not None:
-            self.payload.bits = state["message"].to(self.device)
+            self.payload.bits, self.bit_seed = state["message"].to(self.device), state["bit_seed"]
+            self.model.private.set_message(message_string(self.payload.bits), self.bit_seed)
+            self.model.private.to(self.device)

@@ -69,7 +69,7 @@ class ScaffoldTrainer:
         c = self.config
         schedules = {"mlp_opacity": c.mlp_opacity_lr, "mlp_cov": c.mlp_cov_lr, "mlp_color": c.mlp_color_lr,
                      "mlp_featurebank": c.mlp_featurebank_lr, "appearance": c.appearance_lr,
-                     "mlp_offset": c.mlp_offset_lr, "mlp_bits": c.mlp_bits_lr}
+                     "mlp_offset": c.mlp_offset_lr}
         return schedules[group_name.removeprefix("private_")]
 
     def head_groups(self) -> dict:
