@@ -1,8 +1,9 @@
 """False- and true-positive rates of ``securegs verify`` on small CPU models.
 
 Trains plain Scaffold-GS models and bit containers (``bits:48``) of the built-in scenes room and
-garden with several seeds, tests every container's key against every other model (unmarked) and
-against its own container, whole and after random pruning of 20% of its anchors (marked). Writes
+garden with several seeds, tests every container's key against every other model (unmarked),
+against its own container, whole and after random pruning of 20% of its anchors (marked), and
+against its own container with the features shuffled among the anchors. Writes
 rows.json (one row per test), summary.json, table.md and a histogram of the bit accuracy.
 
     python scripts/verify_fpr.py --out runs/verify_fpr --plot docs/verify_fpr_cpu.png
@@ -20,7 +21,7 @@ from securegs_warp.cli.common import quiet_warp
 from securegs_warp.config import SceneSpec, SecureConfig
 from securegs_warp.io.atomic import atomic_write
 from securegs_warp.rasterizer import RasterOptions
-from securegs_warp.secure.verification_study import plot_histogram, summary, train_model, verification_rows
+from securegs_warp.secure.verification_study import KINDS, plot_histogram, summary, train_model, verification_rows
 
 
 def main():
@@ -33,11 +34,12 @@ def main():
     ap.add_argument("--train-views", type=int, default=12)
     ap.add_argument("--test-views", type=int, default=2)
     ap.add_argument("--iterations", type=int, default=200)
-    ap.add_argument("--plain-seeds", type=int, default=6, help="plain models per scene (seeds 0..N-1)")
-    ap.add_argument("--container-seeds", type=int, default=5, help="containers per scene (seeds 0..N-1)")
+    ap.add_argument("--plain-seeds", type=int, default=8, help="plain models per scene (seeds 0..N-1)")
+    ap.add_argument("--container-seeds", type=int, default=6, help="containers per scene (seeds 0..N-1)")
     ap.add_argument("--bits", type=int, default=48)
     ap.add_argument("--bit-weight", type=float, default=SecureConfig().bit_weight)
-    ap.add_argument("--prunings", type=int, default=5, help="random prunings of each container")
+    ap.add_argument("--prunings", type=int, default=5,
+                    help="random prunings and feature shuffles of each container")
     ap.add_argument("--prune-fraction", type=float, default=0.2)
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -73,7 +75,7 @@ def main():
 
 def table(result: dict) -> str:
     lines = ["| tests | count | verified present | rate | bit accuracy | p-value |", "|---|---|---|---|---|---|"]
-    for side in ("unmarked", "marked"):
+    for side in KINDS:
         s = result[side]
         lines.append(f"| {side} | {s['tests']} | {s['present']} | {s['rate']:.3f} | "
                      f"{s['bit_accuracy_min']:.3f}–{s['bit_accuracy_max']:.3f} | "

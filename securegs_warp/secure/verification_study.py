@@ -1,8 +1,9 @@
 """The false-positive experiment behind ``scripts/verify_fpr.py``.
 
 Trains plain Scaffold-GS models and bit containers of the built-in scenes with several seeds, then
-tests every container's key against every other model (unmarked: the null is true) and against
-its own container, whole and after random pruning (marked). Reports the false- and true-positive
+tests every container's key against every other model (unmarked: the null is true), against its own
+container, whole and after random pruning (marked), and against its own container with the features
+shuffled among the anchors. Reports the false- and true-positive
 rates with their counts, the cover's PSNR against the plain model of the same scene and seed, and
 a histogram of the statistic for marked and unmarked pairs.
 """
@@ -60,32 +61,42 @@ def random_prune(anchors: AnchorModel, fraction: float, generator: torch.Generat
     return pruned
 
 
+KINDS = ("unmarked", "marked", "shuffled")
+
+
 def verification_rows(models: list[StudyModel], prunings: int, fraction: float, alpha: float = DEFAULT_ALPHA,
                       seed: int = 0) -> list[dict]:
-    """One row per (key, model) test: every container's key against every other model (marked
-    False) and against its own container, whole and in ``prunings`` random prunings of
-    ``fraction`` of its anchors (marked True)."""
+    """One row per (key, model) test, by kind: every container's key against every other model
+    ("unmarked": the null is true), against its own container, whole and in ``prunings`` random
+    prunings of ``fraction`` of its anchors ("marked"), and against ``prunings`` copies of its own
+    container with the features shuffled among the anchors ("shuffled": not a null, since the
+    features were trained with the key; it shows what shuffling leaves of the mark)."""
     generator = torch.Generator().manual_seed(seed)
     rows = []
     for key in (m for m in models if m.decoder is not None):
-        tests = [(other.name, other.anchors, False) for other in models if other is not key]
-        tests.append((key.name, key.anchors, True))
-        tests += [(f"{key.name} pruned {fraction:.0%} #{i}", random_prune(key.anchors, fraction, generator), True)
-                  for i in range(prunings)]
-        for name, anchors, marked in tests:
-            result = verify_message(key.decoder, anchors.feat.detach(), anchors.xyz, alpha)
-            rows.append({"key": key.name, "model": name, "marked": marked, **result.to_json()})
+        feat, xyz = key.anchors.feat.detach(), key.anchors.xyz
+        tests = [(other.name, other.anchors.feat.detach(), other.anchors.xyz, "unmarked")
+                 for other in models if other is not key]
+        tests.append((key.name, feat, xyz, "marked"))
+        for i in range(prunings):
+            pruned = random_prune(key.anchors, fraction, generator)
+            tests.append((f"{key.name} pruned {fraction:.0%} #{i}", pruned.feat.detach(), pruned.xyz, "marked"))
+            shuffled = feat[torch.randperm(len(feat), generator=generator)]
+            tests.append((f"{key.name} shuffled #{i}", shuffled, xyz, "shuffled"))
+        for name, test_feat, test_xyz, kind in tests:
+            result = verify_message(key.decoder, test_feat, test_xyz, alpha)
+            rows.append({"key": key.name, "model": name, "kind": kind, **result.to_json()})
     return rows
 
 
 def summary(rows: list[dict]) -> dict:
-    """False-positive rate (present on unmarked pairs) and true-positive rate (present on marked
-    ones), with counts and each side's range of p-values."""
+    """Per kind: tests, how many verified present and the rate (the false-positive rate for
+    "unmarked", the true-positive rate for "marked"), each side's range of bit accuracy and p-value."""
     out = {}
-    for side, marked in (("unmarked", False), ("marked", True)):
-        group = [r for r in rows if r["marked"] is marked]
+    for kind in KINDS:
+        group = [r for r in rows if r["kind"] == kind]
         positives = sum(r["present"] for r in group)
-        out[side] = {"tests": len(group), "present": positives,
+        out[kind] = {"tests": len(group), "present": positives,
                      "rate": positives / len(group) if group else math.nan,
                      "bit_accuracy_min": min((r["bit_accuracy"] for r in group), default=math.nan),
                      "bit_accuracy_max": max((r["bit_accuracy"] for r in group), default=math.nan),
@@ -95,20 +106,22 @@ def summary(rows: list[dict]) -> dict:
 
 
 def plot_histogram(path, rows: list[dict], bits: int) -> None:
-    """PNG: bit accuracy of unmarked and marked pairs, with the exact null distribution
-    Binomial(bits, 1/2) / bits scaled to the unmarked count."""
+    """PNG: bit accuracy of each kind of test, with the exact null distribution Binomial(bits, 1/2)
+    / bits scaled to the unmarked count."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    unmarked = [r["bit_accuracy"] for r in rows if not r["marked"]]
-    marked = [r["bit_accuracy"] for r in rows if r["marked"]]
     edges = [(k - 0.5) / bits for k in range(bits + 2)]
     fig, ax = plt.subplots(figsize=(7, 3.6))
-    ax.hist(unmarked, bins=edges, color="tab:blue", alpha=0.7, label=f"unmarked pairs ({len(unmarked)})")
-    ax.hist(marked, bins=edges, color="tab:red", alpha=0.7, label=f"marked: containers, pruned ({len(marked)})")
-    null = [len(unmarked) * math.comb(bits, k) / 2**bits for k in range(bits + 1)]
+    labels = {"unmarked": "unmarked: other models", "marked": "marked: containers, 20% pruned",
+              "shuffled": "containers, features shuffled"}
+    for kind, colour in zip(KINDS, ("tab:blue", "tab:red", "tab:orange")):
+        values = [r["bit_accuracy"] for r in rows if r["kind"] == kind]
+        ax.hist(values, bins=edges, color=colour, alpha=0.6, label=f"{labels[kind]} ({len(values)})")
+    unmarked = sum(r["kind"] == "unmarked" for r in rows)
+    null = [unmarked * math.comb(bits, k) / 2**bits for k in range(bits + 1)]
     ax.plot([k / bits for k in range(bits + 1)], null, "k--", lw=1, label=f"exact null Binomial({bits}, 1/2)")
     ax.set_xlabel(f"bit accuracy ({bits}-bit messages)")
     ax.set_ylabel("tests")
