@@ -135,3 +135,27 @@ def test_bad_keys_get_one_line_errors(runs, capsys, monkeypatch, tmp_path):
     # reveal still refuses a key made for another release
     assert main(["reveal", str(runs / "p" / "model"), "--key", str(key), "--out", str(tmp_path / "r")]) == 2
     assert "belongs to another container" in capsys.readouterr().err
+
+
+def test_study_counts_each_kind_of_test():
+    """verification_rows on two synthetic containers and one plain model: every key meets every
+    other model once (unmarked), its own container whole and pruned (marked) and shuffled."""
+    from securegs_warp.model import AnchorModel
+    from securegs_warp.secure.verification_study import StudyModel, random_prune, summary, verification_rows
+
+    def model(name, seed, key):
+        g = torch.Generator().manual_seed(seed)
+        anchors = AnchorModel.from_points(torch.rand(3000, 3, generator=g) * 10, voxel_size=0.01)
+        feat = torch.randn(anchors.num_anchors, 32, generator=g) * 0.3
+        decoder = KeyedBitDecoder(32, MESSAGE, new_seed()) if key else None
+        with torch.no_grad():
+            anchors.feat.copy_(marked(decoder, feat, anchors.xyz) if key else feat)
+        return StudyModel(name, "synthetic", seed, anchors, 0.0, decoder)
+
+    models = [model("a", 0, True), model("b", 1, True), model("plain", 2, False)]
+    pruned = random_prune(models[0].anchors, 0.2, torch.Generator().manual_seed(0))
+    assert pruned.num_anchors == models[0].anchors.num_anchors - round(0.2 * models[0].anchors.num_anchors)
+    rows = verification_rows(models, prunings=2, fraction=0.2)
+    result = summary(rows)
+    assert [result[k]["tests"] for k in ("unmarked", "marked", "shuffled")] == [4, 6, 4]
+    assert result["marked"]["rate"] == 1.0 and result["unmarked"]["present"] == 0
