@@ -37,7 +37,7 @@ def main():
     ap.add_argument("--plain-seeds", type=int, default=8, help="plain models per scene (seeds 0..N-1)")
     ap.add_argument("--container-seeds", type=int, default=6, help="containers per scene (seeds 0..N-1)")
     ap.add_argument("--bits", type=int, default=48)
-    ap.add_argument("--bit-weight", type=float, default=SecureConfig().bit_weight)
+    ap.add_argument("--bit-margin", type=float, default=SecureConfig().bit_margin)
     ap.add_argument("--prunings", type=int, default=5,
                     help="random prunings and feature shuffles of each container")
     ap.add_argument("--prune-fraction", type=float, default=0.2)
@@ -47,7 +47,7 @@ def main():
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     raster = RasterOptions(tile_size=8)
-    secure = SecureConfig(payload=f"bits:{args.bits}", bit_weight=args.bit_weight)
+    secure = SecureConfig(payload=f"bits:{args.bits}", bit_margin=args.bit_margin)
     models, t0 = [], time.perf_counter()
     for source in args.scenes.split(","):
         scene = SceneSpec(source=source, width=args.width, height=args.height, n_train=args.train_views,

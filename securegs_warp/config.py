@@ -94,8 +94,9 @@ class SecureConfig:
         shapes for it); docs/results.md has the measured trade-off behind the default 0.1.
     feature_grad_until: the fraction of the run during which hidden_feature_grad applies (after it
         the public loss alone finishes the features).
-    bit_weight: weight of the bit loss (a hinge on each anchor's vote; secure/keyed_bits.py). The
-        bits move the public anchor features, so a larger weight costs the cover fidelity.
+    bit_margin: after every step each anchor feature is moved the least distance that makes its
+        vote's logit agree with its bit by this much (secure/keyed_bits.py; 1: sigmoid 0.73). The
+        bits live in the public anchor features, so a larger margin costs the cover fidelity.
     hdger: the paper's hybrid decoupled Gaussian encryption: hidden offsets come from the private
         MLP F_o†; False ("w/o HDGER", an ablation) stores explicit hidden offsets per anchor, which
         cannot be released.
@@ -107,15 +108,15 @@ class SecureConfig:
     hidden_feature_grad: float = 0.1
     hidden_scaling_grad: float = 1.0
     feature_grad_until: float = 1.0
-    bit_weight: float = 0.03
+    bit_margin: float = 1.0
     hdger: bool = True
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
 
     def __post_init__(self):
         if self.hidden_weight is not None and not self.hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {self.hidden_weight}")
-        if not self.bit_weight >= 0.0:
-            raise ValueError(f"bit_weight must be >= 0, got {self.bit_weight}")
+        if not self.bit_margin > 0.0:
+            raise ValueError(f"bit_margin must be > 0, got {self.bit_margin}")
         for name, meaning in (("hidden_feature_grad", "a share of a gradient"),
                               ("hidden_scaling_grad", "a share of a gradient"),
                               ("feature_grad_until", "a fraction of the run")):

@@ -62,6 +62,22 @@ def test_each_anchor_keeps_its_bit_when_others_are_pruned():
     assert set(bits.tolist()) == set(range(len(MESSAGE)))  # 2000 anchors give every bit voters
 
 
+def test_projection_moves_only_the_features_that_disagree_and_only_along_their_bit():
+    feat, xyz = anchors()
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed())
+    moved = decoder.project(feat, xyz, margin=1.0)
+    logits, bit = decoder(moved, xyz)
+    sign = torch.tensor([1.0 if c == "1" else -1.0 for c in MESSAGE])[bit]
+    assert float((sign * logits).min()) >= 1.0 - 1e-4
+    before, _ = decoder(feat, xyz)
+    agreed = sign * before >= 1.0
+    assert 0 < int(agreed.sum()) < len(feat) and torch.equal(moved[agreed], feat[agreed])
+    delta = moved - feat
+    w = decoder.directions[bit]
+    along = (delta * w).sum(1, keepdim=True) / (w * w).sum(1, keepdim=True) * w
+    assert torch.allclose(delta, along, atol=1e-5)  # the least move: along w_b only
+
+
 def test_marked_features_are_present_and_unmarked_ones_are_fair_coins():
     feat, xyz = anchors()
     decoder = KeyedBitDecoder(32, MESSAGE, new_seed())

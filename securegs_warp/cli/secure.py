@@ -37,8 +37,8 @@ SECURE_FLAGS = (
     ("--hidden-feature-grad", "secure.hidden_feature_grad",
      "share of the hidden loss's gradient reaching the public anchor features, 0 to 1 (lower: the cover stays "
      "closer to plain Scaffold-GS; the paper's 1)"),
-    ("--bit-weight", "secure.bit_weight", "weight of the bit loss (higher: the bits settle sooner; they move the "
-                                          "public anchor features, so the cover pays)"),
+    ("--bit-margin", "secure.bit_margin", "logit margin by which every anchor's vote must agree with its bit (the "
+                                          "bits live in the public anchor features: higher costs the cover)"),
     ("--r-down", "secure.strategy.r_down", "RDO: the public growth threshold is divided by this inside the hidden "
                                           "object's box (everywhere with --mode global)"),
     ("--hidden-every", "secure.strategy.hidden_every", "RDO: accumulate ∇_hid every N steps (larger grows fewer "

@@ -1,4 +1,4 @@
-"""The private decoders of SecureGS (the key): F_o†, F_α†, F_cov†, F_c† and the bit head F_b†.
+"""The private decoders of SecureGS (the key): F_o†, F_α†, F_cov†, F_c† and the bit decoder F_b†.
 
 They read the same public anchors as the public heads; nothing of them is in the public release.
 """

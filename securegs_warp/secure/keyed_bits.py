@@ -28,8 +28,8 @@ from torch import nn
 
 SEED_BYTES = 32
 _DOMAIN = b"securegs-warp keyed bit decoder v1"
-# Logits are LOGIT_SCALE times the projection of a feature on a unit-length direction, and the bit
-# loss is a hinge at logit 1: it stops pushing once a feature lies 0.1 past the decision plane.
+# Logits are LOGIT_SCALE times the projection of a feature on a unit-length direction: a margin of
+# 1 (SecureConfig.bit_margin) puts a feature 0.1 past the decision plane.
 LOGIT_SCALE = 10.0
 
 
@@ -65,8 +65,7 @@ class KeyedBitDecoder(nn.Module):
     bytes (positions are never trained, so pruning or saving leaves the survivors' bits unchanged);
     bit b has a direction w_b [d] (``keyed_uniform``, unit length on average) and the anchor's logit
     is LOGIT_SCALE · w_b · f. One bit per anchor because every bit an anchor carries confines its
-    feature to a half-space that the public heads must live with: 16 bits per anchor cost the cover
-    more than 1 at the same loss weight (docs/results.md). No bias: blank features (f = 0) give
+    feature to a half-space that the public heads must live with. No bias: blank features (f = 0) give
     logits 0, so the message is read from the features. Flipping w_b flips bit b's decision, and
     the w_b are independent: that is what makes the decoded bits of an unmarked model fair coin
     flips. Held as non-persistent buffers: the key stores the seed and the message, not these.
@@ -99,6 +98,16 @@ class KeyedBitDecoder(nn.Module):
         at positions xyz [N, 3]."""
         bit = self.anchor_bits(xyz)
         return LOGIT_SCALE * (feat * self.directions[bit]).sum(dim=1), bit
+
+    @torch.no_grad()
+    def project(self, feat: torch.Tensor, xyz: torch.Tensor, margin: float) -> torch.Tensor:
+        """The features [N, d] moved the least (in Euclidean distance) for every anchor's logit to
+        agree with its bit by at least ``margin``: along w_b, and only where it does not yet."""
+        bit = self.anchor_bits(xyz)
+        w = self.directions[bit]
+        sign = (torch.tensor([int(c) for c in self.message], device=feat.device)[bit] * 2 - 1).to(feat.dtype)
+        short = (margin - sign * LOGIT_SCALE * (feat * w).sum(dim=1)).clamp_min(0)
+        return feat + (sign * short / (LOGIT_SCALE * (w * w).sum(dim=1)))[:, None] * w
 
     @torch.no_grad()
     def vote(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -142,6 +142,7 @@ class ScaffoldTrainer:
                 changed = self.strategy.step_post_backward(self.model.anchors, self.optimizer, self.strategy_state,
                                                            step, branches, generator=self.generator)
             self.optimizer.step()
+            self.after_update()
         self.optimizer.zero_grad(set_to_none=True)
         result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target),
                   "anchors": self.model.anchors.num_anchors, **extra, **changed}
@@ -149,6 +150,10 @@ class ScaffoldTrainer:
         self.step_count = step
         self.train_seconds += time.perf_counter() - t0
         return result
+
+    def after_update(self) -> None:
+        """Hook after each optimizer step (the SecureGS trainer moves the anchor features onto the
+        message there). Scaffold-GS has nothing to do."""
 
     def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
         """Hook for the hidden branch: (total loss, numbers to report); a hidden render adds its
