@@ -140,6 +140,7 @@ def test_bad_keys_get_one_line_errors(runs, capsys, monkeypatch, tmp_path):
         "wrong passphrase": (["--key", str(sealed), "--passphrase-env", "PASS"], "wrong passphrase"),
         "a checkpoint": (["--key", str(runs / "c" / "checkpoint.pt")], "not a securegs key"),
         "missing": (["--key", str(tmp_path / "none")], "no such key file"),
+        "bad alpha": (["--key", str(key), "--alpha", "2"], "alpha must lie in (0, 1)"),
     }
     for name, (args, message) in cases.items():
         capsys.readouterr()

@@ -115,7 +115,7 @@ def plot_histogram(path, rows: list[dict], bits: int) -> None:
 
     edges = [(k - 0.5) / bits for k in range(bits + 2)]
     fig, ax = plt.subplots(figsize=(7, 3.6))
-    labels = {"unmarked": "unmarked: other models", "marked": "marked: containers, 20% pruned",
+    labels = {"unmarked": "unmarked: other models", "marked": "marked: containers, whole and 20% pruned",
               "shuffled": "containers, features shuffled"}
     for kind, colour in zip(KINDS, ("tab:blue", "tab:red", "tab:orange")):
         values = [r["bit_accuracy"] for r in rows if r["kind"] == kind]
