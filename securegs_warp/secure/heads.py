@@ -21,10 +21,10 @@ class PrivateHeads(nn.Module):
         ablation, where the anchors carry explicit hidden offsets instead
         (``AnchorModel.hidden_offsets``; measured by the training scripts, not saved in a release).
     bits (F_b†): a ``KeyedBitDecoder`` derived from ``message`` and ``bit_seed``, never trained —
-        per-anchor bit logits; the message is the average over anchors (each anchor votes). The
-        features are trained until it reads the message from them; a model trained without this
-        key reads as fair coin flips (keyed_bits.py), which is what ``verify`` tests. None
-        without a bit payload.
+        per-anchor bit logits; the message is the average over anchors (each anchor votes). Training
+        projects the features onto the message after every step; a model trained without this key
+        reads as fair coin flips (keyed_bits.py), which is what ``verify`` tests. None without a
+        bit payload.
     scale_offsets: hidden offsets are in units of the anchor's offset scale exp(l_v[:3]), as the
         public offsets are. The paper writes x_v + F_o†(...) without l_v; scaling keeps the MLP's
         output range independent of the scene's size and of the anchor's voxel level, which is what
