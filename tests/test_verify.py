@@ -176,3 +176,19 @@ def test_study_counts_each_kind_of_test():
     result = summary(rows)
     assert [result[k]["tests"] for k in ("unmarked", "marked", "shuffled")] == [4, 6, 4]
     assert result["marked"]["rate"] == 1.0 and result["unmarked"]["present"] == 0
+
+
+def test_a_key_of_the_trained_bit_head_is_refused_in_one_line(runs, capsys, tmp_path):
+    from securegs_warp.io import load_scaffold
+    from securegs_warp.keys import save_key
+    from securegs_warp.secure.container import release_fingerprint
+
+    _, heads = load_scaffold(runs / "c" / "public")
+    old = tmp_path / "old.safetensors"
+    save_key(old, {"private.bit_mlp.0.weight": torch.zeros(32, 32)},
+             {"heads": {"bits": 48, "offsets": False, "scale_offsets": True, "hidden": False}},
+             release_fingerprint(heads))
+    capsys.readouterr()
+    assert main(["verify", str(runs / "c" / "public"), "--key", str(old)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "earlier securegs-warp" in err and len(err.splitlines()) == 1

@@ -64,6 +64,9 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
         return SecureModel(anchors, heads, None), {}
     expected = release_fingerprint(heads) if check_fingerprint else None
     tensors, metadata = load_key(key, passphrase, expected_fingerprint=expected)
+    if "bits" in metadata.get("heads", {}):
+        raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose bit head was trained rather than derived "
+                           "from the key; hide the payload again to get a key this version reads")
     try:
         private = PrivateHeads(heads, **metadata["heads"]).to(device)
         private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})
