@@ -78,6 +78,7 @@ class KeyedBitDecoder(nn.Module):
         self.seed, self.message, self.feat_dim = seed, message, feat_dim
         directions = keyed_uniform(seed, f"directions:{message}", (len(message), feat_dim)) * 3.0**0.5
         self.register_buffer("directions", directions / feat_dim**0.5, persistent=False)
+        self.register_buffer("target", torch.tensor([int(c) for c in message]), persistent=False)  # [L] 0/1
         self._mix = np.frombuffer(_stream(seed, f"anchors:{message}", 32), dtype="<u8") | np.uint64(1)
 
     @property
@@ -105,7 +106,7 @@ class KeyedBitDecoder(nn.Module):
         agree with its bit by at least ``margin``: along w_b, and only where it does not yet."""
         bit = self.anchor_bits(xyz)
         w = self.directions[bit]
-        sign = (torch.tensor([int(c) for c in self.message], device=feat.device)[bit] * 2 - 1).to(feat.dtype)
+        sign = (self.target[bit] * 2 - 1).to(feat.dtype)
         short = (margin - sign * LOGIT_SCALE * (feat * w).sum(dim=1)).clamp_min(0)
         return feat + (sign * short / (LOGIT_SCALE * (w * w).sum(dim=1)))[:, None] * w
 

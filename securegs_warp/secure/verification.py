@@ -68,7 +68,7 @@ def verify_message(decoder: KeyedBitDecoder, feat: torch.Tensor, xyz: torch.Tens
     """Test anchors with features feat [N, d] at positions xyz [N, 3] against the decoder's message."""
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
-    message = torch.tensor([int(b) for b in decoder.message], device=feat.device)
+    message = decoder.target
     vote, counts = decoder.vote(feat, xyz)
     decided = (counts > 0) & (vote != 0.5)
     matched = int(((vote > 0.5).long() == message)[decided].sum())
