@@ -28,6 +28,7 @@ from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.render import render_view
 from securegs_warp.scaffold_model import neutral_heads
 from securegs_warp.secure.heads import PrivateHeads
+from securegs_warp.secure.keyed_bits import new_seed
 
 FEAT, OFFSETS, BITS, CAMERAS = 32, 10, 48, 4
 
@@ -77,8 +78,8 @@ def render_fn(model, plain: ScaffoldHeads, variant: Variant, cam: Camera, device
     raster = RasterOptions(tile_size=tile_size, **variant.raster)
     private = None
     if variant.hidden is not None:
-        private = PrivateHeads(heads, bits=BITS if variant.hidden == "bits" else 0,
-                               hidden=variant.hidden == "object").to(device)
+        bits = {"message": "01" * (BITS // 2), "bit_seed": new_seed()} if variant.hidden == "bits" else {}
+        private = PrivateHeads(heads, **bits, hidden=variant.hidden == "object").to(device)
         if private.decoder is not None:
             private.decoder.load_state_dict(heads.state_dict())
     background = torch.ones(3, device=device) if variant.background else None
@@ -89,8 +90,8 @@ def render_fn(model, plain: ScaffoldHeads, variant: Variant, cam: Camera, device
         if private is not None and private.decoder is not None:
             hid = render_view(model, private.decoder, cam, None, raster, offset_source=private.hidden_offsets)
             image, alpha = image + hid["image"], alpha + hid["alpha"]
-        if private is not None and private.bit_mlp is not None:
-            image = image + 0.0 * private.bit_logits(model.feat).sigmoid().mean()
+        if private is not None and private.bits is not None:
+            image = image + 0.0 * private.bit_logits(model.feat, model.xyz)[0].sigmoid().mean()
         return image, alpha
     return fn
 

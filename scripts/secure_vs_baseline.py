@@ -98,7 +98,7 @@ def main():
         rows[label] = {**public_row(sec, training, scene, radius), "fps_public_and_hidden": fps_both,
                        "psnr_hidden": hid.get("psnr_hidden"), "ssim_hidden": hid.get("ssim_hidden"),
                        "bit_accuracy": hid.get("bit_accuracy"), "hidden_learnt": hid.get("hidden_learnt"),
-                       "bit_accuracy_on_baseline": sec.bit_accuracy(base.model.anchors.feat) if base is not None else None,
+                       "bit_accuracy_on_baseline": sec.bit_accuracy(base.model.anchors) if base is not None else None,
                        "hidden_anchors": int(sec.strategy_state["is_hidden"].sum())}
         clouds[label] = sec.model.anchors.xyz.detach().cpu().numpy()
         print(markdown_row(label, rows[label], rows.get(BASELINE)), flush=True)

@@ -72,7 +72,6 @@ class TrainConfig:
     mlp_featurebank_lr: tuple = (0.01, 0.00001)
     appearance_lr: tuple = (0.05, 0.0005)
     mlp_offset_lr: tuple = (0.004, 0.0004)  # SecureGS's private offset predictor F_o† (no paper value)
-    mlp_bits_lr: tuple = (0.01, 0.001)  # SecureGS's bit head F_b†: 256 bits exact within ~20 steps
     densify: bool = True
 
     def __post_init__(self):
@@ -100,6 +99,9 @@ class SecureConfig:
         shapes for it); docs/results.md has the measured trade-off behind the default 0.1.
     feature_grad_until: the fraction of the run during which hidden_feature_grad applies (after it
         the public loss alone finishes the features).
+    bit_margin: after every step each anchor feature is moved the least distance that makes its
+        vote's logit agree with its bit by this much (secure/keyed_bits.py; 1: sigmoid 0.73). The
+        bits live in the public anchor features, so a larger margin costs the cover fidelity.
     hdger: the paper's hybrid decoupled Gaussian encryption: hidden offsets come from the private
         MLP F_o†; False ("w/o HDGER", an ablation) stores explicit hidden offsets per anchor, which
         cannot be released.
@@ -121,6 +123,7 @@ class SecureConfig:
     hidden_feature_grad: float = 0.1
     hidden_scaling_grad: float = 1.0
     feature_grad_until: float = 1.0
+    bit_margin: float = 1.0
     hdger: bool = True
     robust: str | None = None
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
@@ -145,6 +148,8 @@ class SecureConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.hidden_weight is not None and not self.hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {self.hidden_weight}")
+        if not self.bit_margin > 0.0:
+            raise ValueError(f"bit_margin must be > 0, got {self.bit_margin}")
         for name, meaning in (("hidden_feature_grad", "a share of a gradient"),
                               ("hidden_scaling_grad", "a share of a gradient"),
                               ("feature_grad_until", "a fraction of the run")):

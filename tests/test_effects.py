@@ -14,6 +14,7 @@ from securegs_warp.render import render_view
 from securegs_warp.scaffold_model import build_heads, neutral_heads
 from securegs_warp.secure import SecureTrainer
 from securegs_warp.secure.heads import PrivateHeads
+from securegs_warp.secure.keyed_bits import new_seed
 from securegs_warp.secure.payload import PayloadSpec
 from securegs_warp.train import ScaffoldTrainer
 
@@ -148,6 +149,6 @@ def test_bits_only_payload_builds_no_hidden_decoder_and_renders_as_plain():
     spec = PayloadSpec.parse("bits:16")
     assert spec.kind is None and spec.bits == 16
     plain = plain_heads()
-    private = PrivateHeads(plain, bits=spec.bits, hidden=spec.kind is not None)
+    private = PrivateHeads(plain, message="01" * (spec.bits // 2), bit_seed=new_seed(), hidden=spec.kind is not None)
     assert private.decoder is None and private.offset_mlp is None and private.n_bits == 16
     assert torch.equal(render(plain)["image"], render(plain_heads())["image"])

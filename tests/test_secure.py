@@ -75,7 +75,7 @@ def test_private_heads_mirror_public_shapes(trained):
     d, k = trainer.model.anchors.feat_dim, trainer.model.anchors.n_offsets
     assert trainer.model.private.offset_mlp[0].weight.shape == (d, d + 3)
     assert trainer.model.private.offset_mlp[-1].weight.shape == (3 * k, d)
-    assert trainer.model.private.bit_mlp[-1].weight.shape == (48, d)
+    assert trainer.model.private.bits.directions.shape == (48, d)
 
 
 def test_rdo_grows_a_hidden_set_and_finds_its_box(trained, hidden_scene):
@@ -116,17 +116,21 @@ def test_bits_are_decoded_exactly(trained):
 
 
 @pytest.mark.parametrize("length", [1, 256])
-def test_bit_lengths_1_and_256(hidden_scene, length):
-    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, raster=CPU_RASTER, densify=False),
+def test_bit_lengths_1_and_256(length):
+    """Each anchor carries one bit, so 256 bits need a few thousand anchors (a bit without a voter
+    would read 0; evaluate_hidden counts them)."""
+    scene = make_synthetic_scene(width=40, height=30, n_train=4, n_test=1, n_points=3000)
+    trainer = SecureTrainer(scene, TrainConfig(iterations=30, raster=CPU_RASTER, densify=False),
                             SecureConfig(payload=f"bits:{length}"))
     assert trainer.model.private.decoder is None  # a bit payload renders nothing hidden
     for _ in range(30):
         trainer.step()
-    assert trainer.evaluate_hidden()["bit_accuracy"] == 1.0
+    metrics = trainer.evaluate_hidden()
+    assert metrics["bit_accuracy"] == 1.0 and metrics["bits_without_voters"] == 0
 
 
 def test_bits_are_read_from_the_anchor_features(hidden_scene):
-    """The bit head has no bias, so it cannot output the message as a constant of its own: blank
+    """The bit decoder has no bias, so it cannot output the message as a constant of its own: blank
     anchor features decode nothing, and the message is read from the features. Every anchor votes,
     so it survives losing half of them (random pruning, as in the paper's robustness study)."""
     config = TrainConfig(iterations=40, raster=CPU_RASTER, densify=False)
@@ -134,13 +138,13 @@ def test_bits_are_read_from_the_anchor_features(hidden_scene):
     for _ in range(config.iterations):
         trainer.step()
     bits, private = trainer.payload.bits.long(), trainer.model.private
-    feat = trainer.model.anchors.feat.detach()
-    assert torch.equal(private.decode_bits(feat), bits)
+    feat, xyz = trainer.model.anchors.feat.detach(), trainer.model.anchors.xyz
+    assert torch.equal(private.decode_bits(feat, xyz), bits)
     half = torch.randperm(feat.shape[0], generator=torch.Generator().manual_seed(0))[: feat.shape[0] // 2]
-    assert torch.equal(private.decode_bits(feat[half]), bits)
+    assert torch.equal(private.decode_bits(feat[half], xyz[half]), bits)
     with torch.no_grad():
-        assert float(private.bit_logits(torch.zeros_like(feat)).abs().max()) == 0.0
-    assert not torch.equal(private.decode_bits(torch.zeros_like(feat)), bits)  # all zeros: bits has ones
+        assert float(private.bit_logits(torch.zeros_like(feat), xyz)[0].abs().max()) == 0.0
+    assert not torch.equal(private.decode_bits(torch.zeros_like(feat), xyz), bits)  # all zeros: bits has ones
 
 
 def test_release_is_plain_scaffold_gs_and_holds_no_private_tensor(trained, tmp_path):

@@ -1,7 +1,7 @@
 """``securegs`` command line. train, render, eval, export: the Scaffold-GS engine (cli.train);
 hide, reveal, demo: SecureGS (cli.secure); audit: steganalysis (cli.audit); attack: attacks on a
-release (cli.attack); what they share:
-cli.common."""
+release (cli.attack); verify: whether a release carries a key's message (cli.verify); what they
+share: cli.common."""
 from __future__ import annotations
 
 import argparse
@@ -9,7 +9,7 @@ import sys
 import time
 
 from ..keys import KeyFileError
-from . import attack, audit, secure, train
+from . import attack, audit, secure, train, verify
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,6 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     secure.add_parsers(sub)
     audit.add_parsers(sub)
     attack.add_parsers(sub)
+    verify.add_parsers(sub)
     return parser
 
 

@@ -53,6 +53,8 @@ SECURE_FLAGS = (
     ("--hidden-feature-grad", "secure.hidden_feature_grad",
      "share of the hidden loss's gradient reaching the public anchor features, 0 to 1 (lower: the cover stays "
      "closer to plain Scaffold-GS; the paper's 1)"),
+    ("--bit-margin", "secure.bit_margin", "logit margin by which every anchor's vote must agree with its bit (the "
+                                          "bits live in the public anchor features: higher costs the cover)"),
     ("--r-down", "secure.strategy.r_down", "RDO: the public growth threshold is divided by this inside the hidden "
                                           "object's box (everywhere with --mode global)"),
     ("--hidden-every", "secure.strategy.hidden_every", "RDO: accumulate ∇_hid every N steps (larger grows fewer "
@@ -146,8 +148,7 @@ def key_metadata(trainer) -> dict:
             "background": None if scene.background is None else [float(v) for v in scene.background],
             "hidden_background": p.background.tolist(), "cameras": [c.to_record() for c in cams],
             "hidden_views": [c.name for c in cams] if p.has_images else [],
-            "image_view": p.image_view,
-            "message": None if p.bits is None else "".join(str(int(b)) for b in p.bits.tolist())}
+            "image_view": p.image_view}
 
 
 def finish_container(trainer, run: RunFolder, config: RunConfig, passphrase: str | None) -> dict:
@@ -216,7 +217,7 @@ def cmd_reveal(args) -> int:
     for cam in cams:
         save_png(out.renders / png_name(cam.name, "public_"),
                  model.render(cam, raster, background=background)["image"].clamp(0, 1))
-    if model.private.bit_mlp is not None:
+    if model.private.bits is not None:
         bits = model.decode_bits()
         print("bits:", "".join(str(int(b)) for b in bits))
         out.write_json(out.path / "bits.json", {"bits": bits.tolist()})

@@ -57,14 +57,19 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
     wrong passphrase or a modified key raise ``KeyFileError`` (never a garbage render).
 
     check_fingerprint=False opens a release whose public MLPs no longer match the key's fingerprint.
-    Only ``securegs attack`` passes it: an attack that changes the MLP weights (a float16 round trip,
-    fine-tuning) is meant to be scored with the key it was made against, whereas any other user of
-    a key must be refused a release it was not made for. The key's own integrity is still checked."""
+    Only two tools pass it: ``securegs attack``, because an attack that changes the MLP weights (a
+    float16 round trip, fine-tuning) is meant to be scored with the key it was made against; and
+    ``securegs verify``, which asks whether a release carries the key's message, so a release the key
+    was not made for must get an answer ("absent", with its p-value), not a refusal. Any other user
+    of a key is refused a release it was not made for. The key's own integrity is still checked."""
     anchors, heads = load_scaffold(public, device=device)
     if key is None:
         return SecureModel(anchors, heads, None), {}
     expected = release_fingerprint(heads) if check_fingerprint else None
     tensors, metadata = load_key(key, passphrase, expected_fingerprint=expected)
+    if "bits" in metadata.get("heads", {}):
+        raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose bit head was trained rather than derived "
+                           "from the key; hide the payload again to get a key this version reads")
     try:
         private = PrivateHeads(heads, **metadata["heads"]).to(device)
         private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})

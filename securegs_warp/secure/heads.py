@@ -1,4 +1,4 @@
-"""The private decoders of SecureGS (the key): F_o†, F_α†, F_cov†, F_c† and the bit head F_b†.
+"""The private decoders of SecureGS (the key): F_o†, F_α†, F_cov†, F_c† and the bit decoder F_b†.
 
 They read the same public anchors as the public heads; nothing of them is in the public release.
 """
@@ -9,6 +9,7 @@ from torch import nn
 
 from ..model import ScaffoldHeads, make_mlp
 from ..model.neural_gaussians import AnchorViewInputs
+from .keyed_bits import KeyedBitDecoder
 
 FRAMES = ("anchor", "box")
 
@@ -21,12 +22,11 @@ class PrivateHeads(nn.Module):
         (the paper's hybrid decoupled Gaussian encryption, HDGER). ``None`` in the "w/o HDGER"
         ablation, where the anchors carry explicit hidden offsets instead
         (``AnchorModel.hidden_offsets``; measured by the training scripts, not saved in a release).
-    bit_mlp (F_b†): Linear(d, d), ReLU, Linear(d, L), both without bias — per-anchor bit logits;
-        the message is the average over anchors (each anchor votes). Without biases the head cannot
-        learn the message as a constant of its own (F_b†(0) = 0): it is read from the features.
-        It is not a watermark test, though: features trained on the same scene without the
-        message can decode it too (docs/results.md), since the head maps what such features
-        have in common to the message.
+    bits (F_b†): a ``KeyedBitDecoder`` derived from ``message`` and ``bit_seed``, never trained —
+        per-anchor bit logits; the message is the average over anchors (each anchor votes). Training
+        projects the features onto the message after every step; a model trained without this key
+        reads as fair coin flips (keyed_bits.py), which is what ``verify`` tests. None without a
+        bit payload.
     scale_offsets: hidden offsets are in units of the anchor's offset scale exp(l_v[:3]), as the
         public offsets are. The paper writes x_v + F_o†(...) without l_v; scaling keeps the MLP's
         output range independent of the scene's size and of the anchor's voxel level, which is what
@@ -45,9 +45,9 @@ class PrivateHeads(nn.Module):
         frame (0: every anchor that the view shows).
     """
 
-    def __init__(self, public: ScaffoldHeads, *, bits: int = 0, offsets: bool = True, scale_offsets: bool = True,
-                 hidden: bool = True, frame: str = "anchor", n_hidden: int | None = None, width: int | None = None,
-                 serving: int = 0):
+    def __init__(self, public: ScaffoldHeads, *, message: str | None = None, bit_seed: str | None = None,
+                 offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
+                 n_hidden: int | None = None, width: int | None = None, serving: int = 0):
         super().__init__()
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -62,13 +62,20 @@ class PrivateHeads(nn.Module):
                                      add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
                                      add_color_dist=public.add_color_dist, width=w) if hidden else None
         self.offset_mlp = make_mlp(d + 3, w, 3 * k) if hidden and offsets else None
-        self.bit_mlp = make_mlp(d, d, bits, bias=False) if bits > 0 else None
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
+        self.bits = None
+        self.set_message(message, bit_seed)
+
+    def set_message(self, message: str | None, bit_seed: str | None) -> None:
+        """(Re)derive the bit decoder (on the CPU) from the message (L characters 0/1) and its seed (hex)."""
+        if (message is None) != (bit_seed is None):
+            raise ValueError("a bit payload needs both its message and its decoder's seed")
+        self.bits = None if message is None else KeyedBitDecoder(self.feat_dim, message, bit_seed)
 
     @property
     def n_bits(self) -> int:
-        return 0 if self.bit_mlp is None else self.bit_mlp[-1].out_features
+        return 0 if self.bits is None else self.bits.n_bits
 
     def hidden_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
         """World-space displacements [Nv, k_hid, 3] of the hidden Gaussians of the decoded anchors."""
@@ -97,26 +104,27 @@ class PrivateHeads(nn.Module):
         mask[outside.topk(min(self.serving, len(xyz)), largest=False).indices] = True
         return mask
 
-    def bit_logits(self, feat: torch.Tensor) -> torch.Tensor:
-        """Per-anchor bit logits [N, L] from anchor features [N, d]."""
-        return self.bit_mlp(feat)
+    def bit_logits(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-anchor bit logits [N] and the bit each anchor votes on [N] (int64), from anchor
+        features [N, d] at positions [N, 3] (see ``KeyedBitDecoder``)."""
+        return self.bits(feat, xyz)
 
     @torch.no_grad()
-    def decode_bits(self, feat: torch.Tensor) -> torch.Tensor:
-        """The message [L] (0/1 ints): each anchor votes with its sigmoid, the mean decides."""
-        return (torch.sigmoid(self.bit_logits(feat)).mean(dim=0) > 0.5).to(torch.int64)
+    def decode_bits(self, feat: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
+        """The message [L] (0/1 ints): each anchor votes on its bit with its sigmoid, the mean
+        decides (a bit no anchor votes on reads 0)."""
+        return (self.bits.vote(feat, xyz)[0] > 0.5).to(torch.int64)
 
     def named_mlps(self) -> dict[str, nn.Module]:
         """Trainable parts by learning-rate schedule (the decoder's names are the public ones)."""
         parts = dict(self.decoder.named_mlps()) if self.decoder is not None else {}
         if self.offset_mlp is not None:
             parts["mlp_offset"] = self.offset_mlp
-        if self.bit_mlp is not None:
-            parts["mlp_bits"] = self.bit_mlp
         return parts
 
     def describe(self) -> dict:
         """The constructor arguments, for the key's metadata."""
-        return {"bits": self.n_bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
+        bits = {} if self.bits is None else {"message": self.bits.message, "bit_seed": self.bits.seed}
+        return {**bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
                 "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
                 "width": self.width, "serving": self.serving}

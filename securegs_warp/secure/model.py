@@ -79,10 +79,11 @@ class SecureModel(ScaffoldModel):
         return self.anchors.hidden_offsets[inputs.anchor_index] * inputs.scaling[:, None, :3]
 
     @torch.no_grad()
-    def decode_bits(self, feat: torch.Tensor | None = None) -> torch.Tensor:
-        """The hidden message [L] (0/1 int64) read from anchor features [N, d] (default: this
-        model's own); needs a key with a bit head."""
+    def decode_bits(self, anchors: AnchorModel | None = None) -> torch.Tensor:
+        """The hidden message [L] (0/1 int64) read from the features of ``anchors`` (default: this
+        model's own); needs a key with a bit payload."""
         private = self._key()
-        if private.bit_mlp is None:
+        if private.bits is None:
             raise ValueError("this key hides no bits")
-        return private.decode_bits(self.anchors.feat if feat is None else feat)
+        anchors = self.anchors if anchors is None else anchors
+        return private.decode_bits(anchors.feat, anchors.xyz)

@@ -20,7 +20,6 @@ from ..data.cameras import read_image, resize_image
 # λ of ℓ_total = ℓ_ori + λ·ℓ_hid: the paper's 10 for objects and 0.1 for one image; a whole hidden
 # scene is as large as the cover, so it gets equal weight.
 HIDDEN_WEIGHT = {"object": 10.0, "scene": 1.0, "image": 0.1}
-BIT_WEIGHT = 1.0
 
 
 @dataclasses.dataclass
@@ -133,6 +132,11 @@ def builtin_emblem(height: int, width: int) -> np.ndarray:
     img = np.stack([0.9 - 0.5 * rings, 0.55 + 0.3 * rings, 0.2 + 0.2 * rings], axis=-1)
     img[cross] = (0.1, 0.1, 0.5)
     return np.clip(img, 0, 1).astype(np.float32)
+
+
+def message_string(bits: torch.Tensor | None) -> str | None:
+    """A message [L] of 0/1 values as the string of its bits ("0110..."), None for None."""
+    return None if bits is None else "".join(str(int(b)) for b in bits.tolist())
 
 
 def build_payload(spec: PayloadSpec, scene: SceneData, device) -> Payload:

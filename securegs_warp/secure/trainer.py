@@ -3,14 +3,13 @@
 Per step: the public render of a training view gives ℓ_ori; the private heads decode the same
 anchors into hidden Gaussians (positions from F_o†) rendered from the same camera against the
 payload's hidden view (or, for an image payload, from the one chosen view) for λ·ℓ_hid; a bit
-payload adds a BCE term on the per-anchor votes of F_b†. One backward through both renders, then
-the region-aware strategy looks at both branches' gradients.
+payload moves each anchor feature onto its bit of the keyed decoder F_b† after every step. One
+backward through both renders, then the region-aware strategy looks at both branches' gradients.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from .. import evaluation
 from ..config import SecureConfig, TrainConfig
@@ -18,8 +17,9 @@ from ..data import Camera, SceneData
 from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
+from .keyed_bits import new_seed
 from .model import SecureModel
-from .payload import BIT_WEIGHT, PayloadSpec, build_payload
+from .payload import PayloadSpec, build_payload, message_string
 from .robust import parse_robust, perturb, public_opacity
 
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
@@ -44,6 +44,9 @@ class SecureTrainer(ScaffoldTrainer):
         self.payload = build_payload(self.spec, scene, torch.device(device))
         if secure.hidden_weight is not None:
             self.payload.weight = float(secure.hidden_weight)
+        # The bit decoder's seed is secret like the message (not from the training seed, which
+        # config.json records); a checkpoint keeps both.
+        self.bit_seed = new_seed() if self.payload.bits is not None else None
         strategy = secure.strategy.scaled_to(config.iterations)
         strategy.hidden_weight = self.payload.weight  # ∇_hid per unit of ℓ_hid (RegionAwareStrategy)
         strategy.use_bbox = self.spec.kind in ("object", "image")
@@ -51,7 +54,8 @@ class SecureTrainer(ScaffoldTrainer):
 
     def _make_model(self, anchors, heads) -> SecureModel:
         options = self.secure.private_options()
-        private = PrivateHeads(heads, bits=self.spec.bits, offsets=self.secure.hdger, hidden=self.payload.has_images,
+        private = PrivateHeads(heads, message=message_string(self.payload.bits), bit_seed=self.bit_seed,
+                               offsets=self.secure.hdger, hidden=self.payload.has_images,
                                **options).to(anchors.xyz.device)
         if options["frame"] == "box" and private.decoder is not None:
             bounds = getattr(self.scene, "hidden_bbox", None)
@@ -92,7 +96,8 @@ class SecureTrainer(ScaffoldTrainer):
 
     def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
         p, extra = self.payload, {}
-        # Robust training: this step's hidden branch (render and bits) reads randomly attacked anchors.
+        # Robust training: this step's hidden render reads randomly attacked anchors (the bits are
+        # projected into every anchor after the update, see after_update).
         anchors = perturb(self.model.anchors, self.robust, self.generator,
                           public_opacity(branches["public"][0], self.model.anchors)) if self.robust else None
         view = index if p.views is not None else p.image_view
@@ -102,13 +107,17 @@ class SecureTrainer(ScaffoldTrainer):
             loss = loss + p.weight * self.image_loss(out, target)
             branches["hidden"] = (out["gaussians"], out["info"])
             extra["psnr_hidden"] = psnr(out["image"].detach(), target)
-        if p.bits is not None:
-            feat = self.model.anchors.feat
-            if anchors is not None:
-                feat = anchors.feat if anchors.keep is None else anchors.feat[anchors.keep]
-            logits = self.model.private.bit_logits(feat)
-            loss = loss + BIT_WEIGHT * F.binary_cross_entropy_with_logits(logits, p.bits.expand_as(logits))
         return loss, extra
+
+    @torch.no_grad()
+    def after_update(self) -> None:
+        """Move each anchor feature the least distance that makes its vote agree with its bit of
+        the message by bit_margin (a projection, not a loss: a loss's gradient goes through Adam,
+        which turns it into steps of the learning rate on every coordinate and cost the cover
+        0.3-1.2 dB; the projection moves a feature along one direction, only as far as needed)."""
+        if self.payload.bits is not None:
+            anchors = self.model.anchors
+            anchors.feat.copy_(self.model.private.bits.project(anchors.feat, anchors.xyz, self.secure.bit_margin))
 
     # -- evaluation -----------------------------------------------------------------------------
 
@@ -142,30 +151,36 @@ class SecureTrainer(ScaffoldTrainer):
             cams = self.scene.test or self.scene.train
             out["fps_hidden"] = evaluation.render_fps(self.render_hidden, cams, self.device)
         if p.bits is not None:
+            anchors = self.model.anchors
             out["bit_accuracy"] = self.bit_accuracy()
+            # One bit per anchor: a message longer than a model's anchors can carry reads 0 where no
+            # anchor votes.
+            out["bits_without_voters"] = int((self.model.private.bits.vote(anchors.feat, anchors.xyz)[1] == 0).sum())
         return out
 
     @torch.no_grad()
-    def bit_accuracy(self, feat: torch.Tensor | None = None) -> float | None:
-        """The fraction of the hidden message the key's bit head reads from anchor features [N, d]:
-        this container's by default, or another model's (a plain Scaffold-GS model's features show
-        whether the head would "find" the message where it never was; 0.5 is chance). None
-        without a bit payload."""
+    def bit_accuracy(self, anchors=None) -> float | None:
+        """The fraction of the hidden message the key's bit decoder reads from ``anchors`` (an
+        ``AnchorModel``): this container's by default, or another model's (on a model trained
+        without this key it is a fair coin per bit: 0.5 on average). None without a bit payload."""
         if self.payload.bits is None:
             return None
-        decoded = self.model.decode_bits(feat)
+        decoded = self.model.decode_bits(anchors)
         return float((decoded == self.payload.bits.long()).float().mean())
 
     # -- checkpoints ----------------------------------------------------------------------------
 
     def checkpoint_state(self) -> dict:
         state = {**super().checkpoint_state(), "private": self.model.private.state_dict()}
-        if self.payload.bits is not None:  # drawn at random when the run began: resuming keeps it
+        if self.payload.bits is not None:  # drawn at random when the run began: resuming keeps them
             state["message"] = self.payload.bits.detach().cpu()
+            state["bit_seed"] = self.bit_seed
         return state
 
     def restore(self, state: dict, path) -> None:
         super().restore(state, path)
         self.model.private.load_state_dict(state["private"])
         if self.payload.bits is not None:
-            self.payload.bits = state["message"].to(self.device)
+            self.payload.bits, self.bit_seed = state["message"].to(self.device), state["bit_seed"]
+            self.model.private.set_message(message_string(self.payload.bits), self.bit_seed)
+            self.model.private.to(self.device)

@@ -76,7 +76,7 @@ class ScaffoldTrainer:
         c = self.config
         schedules = {"mlp_opacity": c.mlp_opacity_lr, "mlp_cov": c.mlp_cov_lr, "mlp_color": c.mlp_color_lr,
                      "mlp_featurebank": c.mlp_featurebank_lr, "appearance": c.appearance_lr,
-                     "mlp_offset": c.mlp_offset_lr, "mlp_bits": c.mlp_bits_lr}
+                     "mlp_offset": c.mlp_offset_lr}
         return schedules[group_name.removeprefix("private_")]
 
     def head_groups(self) -> dict:
@@ -149,6 +149,7 @@ class ScaffoldTrainer:
                 changed = self.strategy.step_post_backward(self.model.anchors, self.optimizer, self.strategy_state,
                                                            step, branches, generator=self.generator)
             self.optimizer.step()
+            self.after_update()
         self.optimizer.zero_grad(set_to_none=True)
         result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target),
                   "anchors": self.model.anchors.num_anchors, **extra, **changed}
@@ -156,6 +157,10 @@ class ScaffoldTrainer:
         self.step_count = step
         self.train_seconds += time.perf_counter() - t0
         return result
+
+    def after_update(self) -> None:
+        """Hook after each optimizer step (the SecureGS trainer moves the anchor features onto the
+        message there). Scaffold-GS has nothing to do."""
 
     def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
         """Hook for the hidden branch: (total loss, numbers to report); a hidden render adds its

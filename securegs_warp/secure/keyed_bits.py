@@ -1,0 +1,120 @@
+"""The bit decoder F_b†: a fixed function of the key, derived from a secret seed, never trained.
+
+Why fixed: a decoder trained on the message learns to output the message from whatever features it
+is given (a plain Scaffold-GS model decoded all 48 bits of a key made without it). A decoder drawn
+from the key alone is independent of every model trained without that key, so on such a model each
+decoded bit equals the message's bit with probability exactly 1/2, independently of the others:
+the number of agreements is Binomial(L, 1/2), whatever the model (``verification.py``). The
+container carries the message because training moves its anchor features until the decoder reads
+the message from them.
+
+The weights come from SHAKE-256 of the seed and the message, so a key stores only the seed (32
+bytes) besides the message, and every machine and library version derives the same decoder.
+``verify`` derives it from the key's seed and message, never from stored weights. So a forger who
+wants a key for someone else's release cannot decode the release with a decoder of their choice and
+call the result their message: every (seed, message) they try gives a new decoder, which reads
+that message from an unmarked release no better than chance. A forger who tries K keys expects to
+reach a p-value near 1/K, which is why ``verify`` reports the p-value and not only a decision.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import secrets
+
+import numpy as np
+import torch
+from torch import nn
+
+SEED_BYTES = 32
+_DOMAIN = b"securegs-warp keyed bit decoder v1"
+# Logits are LOGIT_SCALE times the projection of a feature on a unit-length direction: a margin of
+# 1 (SecureConfig.bit_margin) puts a feature 0.1 past the decision plane.
+LOGIT_SCALE = 10.0
+
+
+def new_seed() -> str:
+    """A fresh secret seed (hex) from the operating system's secure source."""
+    return secrets.token_hex(SEED_BYTES)
+
+
+def _stream(seed: str, label: str, n_bytes: int) -> bytes:
+    try:
+        raw = bytes.fromhex(seed)
+    except (TypeError, ValueError):
+        raise ValueError("the bit decoder's seed must be a hex string") from None
+    if len(raw) != SEED_BYTES:
+        raise ValueError(f"the bit decoder's seed must be {SEED_BYTES} bytes, got {len(raw)}")
+    return hashlib.shake_256(_DOMAIN + b"\0" + raw + b"\0" + label.encode()).digest(n_bytes)
+
+
+def keyed_uniform(seed: str, label: str, shape: tuple[int, ...]) -> torch.Tensor:
+    """Float32 tensor of ``shape``, uniform in (-1, 1), from SHAKE-256(domain, seed, label).
+
+    Each value comes from 4 bytes of the stream (24 bits used), so the values are symmetric about 0
+    and independent to the hash's strength; the same seed gives the same tensor on every machine."""
+    words = np.frombuffer(_stream(seed, label, 4 * math.prod(shape)), dtype="<u4") >> 8  # exact in float32
+    values = (words.astype(np.float64) + 0.5) / 2**23 - 1.0
+    return torch.from_numpy(values.astype(np.float32)).reshape(shape)
+
+
+class KeyedBitDecoder(nn.Module):
+    """Per-anchor bit logits from anchor features, derived from ``seed`` and ``message``.
+
+    Each anchor carries one bit of the message, chosen by a keyed hash of its position's float32
+    bytes (positions are never trained, so pruning or saving leaves the survivors' bits unchanged);
+    bit b has a direction w_b [d] (``keyed_uniform``, unit length on average) and the anchor's logit
+    is LOGIT_SCALE · w_b · f. One bit per anchor because every bit an anchor carries confines its
+    feature to a half-space that the public heads must live with. No bias: blank features (f = 0) give
+    logits 0, so the message is read from the features. Flipping w_b flips bit b's decision, and
+    the w_b are independent: that is what makes the decoded bits of an unmarked model fair coin
+    flips. Held as non-persistent buffers: the key stores the seed and the message, not these.
+    """
+
+    def __init__(self, feat_dim: int, message: str, seed: str):
+        super().__init__()
+        if not message or set(message) - {"0", "1"}:
+            raise ValueError(f"the message must be a non-empty string of 0 and 1, got {message!r}")
+        self.seed, self.message, self.feat_dim = seed, message, feat_dim
+        directions = keyed_uniform(seed, f"directions:{message}", (len(message), feat_dim)) * 3.0**0.5
+        self.register_buffer("directions", directions / feat_dim**0.5, persistent=False)
+        self.register_buffer("target", torch.tensor([int(c) for c in message]), persistent=False)  # [L] 0/1
+        self._mix = np.frombuffer(_stream(seed, f"anchors:{message}", 32), dtype="<u8") | np.uint64(1)
+
+    @property
+    def n_bits(self) -> int:
+        return len(self.message)
+
+    def anchor_bits(self, xyz: torch.Tensor) -> torch.Tensor:
+        """The bit [N] (int64, 0..L-1) that each anchor at positions xyz [N, 3] (float32) carries."""
+        words = np.ascontiguousarray(xyz.detach().to("cpu", torch.float32).numpy()).view("<u4").astype(np.uint64)
+        with np.errstate(over="ignore"):  # arithmetic modulo 2^64 is the point
+            h = (words[:, 0] * self._mix[0]) ^ (words[:, 1] * self._mix[1]) ^ (words[:, 2] * self._mix[2])
+            h = (h ^ (h >> np.uint64(29))) * self._mix[3]
+            h ^= h >> np.uint64(32)
+        return torch.from_numpy((h % np.uint64(self.n_bits)).astype(np.int64)).to(xyz.device)
+
+    def forward(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(logits [N], the bit each anchor votes on [N] int64) of anchors with features feat [N, d]
+        at positions xyz [N, 3]."""
+        bit = self.anchor_bits(xyz)
+        return LOGIT_SCALE * (feat * self.directions[bit]).sum(dim=1), bit
+
+    @torch.no_grad()
+    def project(self, feat: torch.Tensor, xyz: torch.Tensor, margin: float) -> torch.Tensor:
+        """The features [N, d] moved the least (in Euclidean distance) for every anchor's logit to
+        agree with its bit by at least ``margin``: along w_b, and only where it does not yet."""
+        bit = self.anchor_bits(xyz)
+        w = self.directions[bit]
+        sign = (self.target[bit] * 2 - 1).to(feat.dtype)
+        short = (margin - sign * LOGIT_SCALE * (feat * w).sum(dim=1)).clamp_min(0)
+        return feat + (sign * short / (LOGIT_SCALE * (w * w).sum(dim=1)))[:, None] * w
+
+    @torch.no_grad()
+    def vote(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(each bit's mean vote [L] in [0, 1]: the mean sigmoid of its voters' logits, 0.5 when
+        no anchor votes on it; each bit's number of voters [L] int64)."""
+        logits, bit = self(feat, xyz)
+        counts = torch.bincount(bit, minlength=self.n_bits)
+        total = torch.zeros(self.n_bits, device=feat.device).index_add_(0, bit, torch.sigmoid(logits))
+        return torch.where(counts > 0, total / counts.clamp_min(1), torch.full_like(total, 0.5)), counts
