@@ -70,7 +70,7 @@ class KeyViews:
         cams = [Camera.from_record(r) for r in meta.get("cameras", [])]
         names = set(meta.get("hidden_views", []))
         colour = lambda v: None if v is None else torch.tensor(v, dtype=torch.float32, device=device)  # noqa: E731
-        message = meta.get("message")
+        message = meta.get("heads", {}).get("message")  # the keyed bit decoder's message
         return cls(cams, [c for c in cams if c.name in names],
                    from_dict(RasterOptions, meta.get("raster", {}), "key raster options"),
                    colour(meta.get("background")), colour(meta.get("hidden_background")),
@@ -105,7 +105,7 @@ def score_release(model: SecureModel, views: KeyViews, reference: list[torch.Ten
     if reference is not None and renders:
         metrics = image_metrics(zip(renders, reference), device, with_lpips=False)
         out["psnr_hidden"], out["ssim_hidden"] = min(metrics["psnr"], PSNR_IDENTICAL), metrics["ssim"]
-    if views.message is not None and model.private is not None and model.private.bit_mlp is not None:
+    if views.message is not None and model.private is not None and model.private.bits is not None:
         out["bit_accuracy"] = float((model.decode_bits() == views.message).float().mean())
     if scene is not None:
         by_name = {c.name: c for c in scene.train + scene.test}

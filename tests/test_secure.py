@@ -134,7 +134,8 @@ def test_bits_are_read_from_the_anchor_features(hidden_scene):
     anchor features decode nothing, and the message is read from the features. Every anchor votes,
     so it survives losing half of them (random pruning, as in the paper's robustness study)."""
     config = TrainConfig(iterations=40, raster=CPU_RASTER, densify=False)
-    trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:64"))
+    # 16 bits: each anchor carries one bit, so every bit keeps voters after half of the anchors go.
+    trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:16"))
     for _ in range(config.iterations):
         trainer.step()
     bits, private = trainer.payload.bits.long(), trainer.model.private
