@@ -159,21 +159,18 @@ def test_disk_full_is_one_line_and_loses_nothing(tmp_path, monkeypatch, capsys):
 
 # --- bad input -----------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("extra, message", [
-    (["--iterations", "0"], "iterations must be >= 1"),
-    (["--iterations", "-5"], "iterations must be >= 1"),
-    (["--iterations", "ten"], "not a valid int"),
-    (["--width", "0"], "width must be >= 1"),
-    (["--height", "-1"], "height must be >= 1"),
-    (["--train-views", "0"], "n_train must be >= 1"),
-    (["--test-views", "0"], "n_test"),
-    (["--downscale", "0"], "downscale must be >= 1"),
-    (["--log-every", "0"], "--log-every must be >= 1"),
-    (["--checkpoint-every", "0"], "--checkpoint-every must be >= 1"),
-    (["--tile-size", "12"], "tile_size must be 8, 16 or 32"),
-    (["--device", "bogus"], "--device"),
-    (["--device", "mps"], "only cpu and cuda"),
-])
+# (extra arguments, what the one-line error says), by where the check lives
+CONFIG_FIELDS = [(["--iterations", "0"], "iterations must be >= 1"), (["--iterations", "-5"], "iterations must be >= 1"),
+                 (["--iterations", "ten"], "not a valid int"), (["--tile-size", "12"], "tile_size must be 8, 16 or 32")]
+SCENE_FIELDS = [(["--width", "0"], "width must be >= 1"), (["--height", "-1"], "height must be >= 1"),
+                (["--train-views", "0"], "n_train must be >= 1"), (["--test-views", "0"], "n_test"),
+                (["--downscale", "0"], "downscale must be >= 1")]
+RUN_OPTIONS = [(["--log-every", "0"], "--log-every must be >= 1"),
+               (["--checkpoint-every", "0"], "--checkpoint-every must be >= 1"),
+               (["--device", "bogus"], "--device"), (["--device", "mps"], "only cpu and cuda")]
+
+
+@pytest.mark.parametrize("extra, message", CONFIG_FIELDS + SCENE_FIELDS + RUN_OPTIONS)
 def test_bad_options_get_one_line(tmp_path, capsys, extra, message):
     out = tmp_path / "r"
     assert main(["train", "--out", str(out), "--quiet", *TINY, *extra]) == 2
