@@ -277,3 +277,41 @@ def test_cpu_training_takes_half_the_cores(tmp_path):
         assert torch.get_num_threads() == cpu_threads() == max(1, cores // 2)
     finally:
         torch.set_num_threads(before)
+
+
+# --- usability ------------------------------------------------------------------------------------
+
+def test_model_commands_read_hide_runs(tmp_path):
+    """render, eval and export load the saved model of a `hide` run (its public/ release) as they do
+    a `train` run's model/; export writes every anchor's Gaussians, not one view's visible ones."""
+    from securegs_warp.config import SceneSpec
+    from securegs_warp.io import read_3dgs_ply
+    from securegs_warp.scaffold_model import ScaffoldModel
+
+    run = tmp_path / "c"
+    assert main(["hide", "--out", str(run), "--iterations", "2", "--quiet", "--payload", "bits:8", *TINY]) == 0
+    assert main(["eval", str(run)]) == 0 and (run / "eval.json").is_file()
+    assert main(["render", str(run), "--out", str(tmp_path / "r")]) == 0
+    assert main(["export", str(run), "--out", str(tmp_path / "x.ply")]) == 0
+    model = ScaffoldModel.load(run / "public")
+    cam = SceneSpec(width=24, height=18, n_train=3, n_test=1).load().train[0]
+    exported = read_3dgs_ply(tmp_path / "x.ply")["means"].shape[0]
+    assert exported == model.gaussians(cam)["means"].shape[0]
+
+
+def test_relative_scene_folders_are_recorded_absolute(tmp_path, monkeypatch):
+    """A data folder given relative to where the run started still loads from anywhere later."""
+    from securegs_warp.config import SceneSpec
+
+    (tmp_path / "data").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert SceneSpec(source="data").source == str(tmp_path / "data")
+    assert SceneSpec(source="synthetic").source == "synthetic"  # a built-in name stays a name
+
+
+def test_commands_print_no_warp_banner(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "securegs_warp.cli", "train", "--out", str(tmp_path / "r"),
+                           "--iterations", "2", "--quiet", *TINY], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    for line in (proc.stdout + proc.stderr).splitlines():
+        assert "Warp" not in line and "Module " not in line, line
