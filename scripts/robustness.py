@@ -21,9 +21,9 @@ import torch
 from securegs_warp.cli import main as securegs
 from securegs_warp.cli.common import quiet_warp
 from securegs_warp.config import RunConfig, from_dict
-from securegs_warp.robustness import SWEEP, KeyViews, plot_sweep, sweep, write_sweep
+from securegs_warp.robustness import SWEEP, plot_sweep, sweep, write_sweep
 from securegs_warp.runs import RunFolder
-from securegs_warp.secure.container import PLAIN_KEY, open_container
+from securegs_warp.secure.container import PLAIN_KEY, KeyViews, open_container
 
 
 def main():

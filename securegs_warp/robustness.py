@@ -9,7 +9,6 @@ the cover against the scene's held-out views.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import io
 import json
 from pathlib import Path
@@ -18,12 +17,12 @@ import numpy as np
 import torch
 
 from .attacks import Attack, AttackContext, apply_attacks
-from .config import TrainConfig, from_dict
-from .data import Camera, SceneData
+from .config import TrainConfig
+from .data import SceneData
 from .evaluation import image_metrics
 from .io.atomic import atomic_write
-from .rasterizer import RasterOptions
 from .scaffold_model import ScaffoldModel
+from .secure.container import KeyViews
 from .secure.model import SecureModel
 
 # The PSNR reported for renders identical to their reference (infinite otherwise, which JSON cannot hold).
@@ -47,34 +46,6 @@ SWEEP = {
     "half": ["half"],
     "finetune": ["finetune:25", "finetune:50", "finetune:100", "finetune:200"],
 }
-
-
-@dataclasses.dataclass
-class KeyViews:
-    """What the key's metadata says about rendering (see ``cli.secure.key_metadata``).
-
-    cameras: every camera the key stores; hidden: those that show the hidden payload. raster: the
-    rasterizer options. background, hidden_background: [3] colours (None: black). message: [L] 0/1
-    int64, or None without bits.
-    """
-
-    cameras: list[Camera]
-    hidden: list[Camera]
-    raster: RasterOptions
-    background: torch.Tensor | None
-    hidden_background: torch.Tensor | None
-    message: torch.Tensor | None
-
-    @classmethod
-    def from_metadata(cls, meta: dict, device) -> "KeyViews":
-        cams = [Camera.from_record(r) for r in meta.get("cameras", [])]
-        names = set(meta.get("hidden_views", []))
-        colour = lambda v: None if v is None else torch.tensor(v, dtype=torch.float32, device=device)  # noqa: E731
-        message = meta.get("heads", {}).get("message")  # the keyed bit decoder's message
-        return cls(cams, [c for c in cams if c.name in names],
-                   from_dict(RasterOptions, meta.get("raster", {}), "key raster options"),
-                   colour(meta.get("background")), colour(meta.get("hidden_background")),
-                   None if message is None else torch.tensor([int(b) for b in message], device=device))
 
 
 @torch.no_grad()

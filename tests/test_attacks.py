@@ -11,10 +11,10 @@ from securegs_warp.config import SecureConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.model import AnchorModel, ScaffoldHeads
 from securegs_warp.rasterizer import RasterOptions
-from securegs_warp.robustness import KeyViews, score_release, sweep
+from securegs_warp.robustness import score_release, sweep
 from securegs_warp.scaffold_model import ScaffoldModel
 from securegs_warp.secure import SecureTrainer
-from securegs_warp.secure.container import open_container
+from securegs_warp.secure.container import KeyViews, open_container
 from securegs_warp.secure.robust import PerturbedAnchors, parse_robust, perturb
 
 CPU_RASTER = RasterOptions(tile_size=8)

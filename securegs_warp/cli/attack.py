@@ -12,9 +12,9 @@ from ..attacks import ATTACK_SYNTAX, FINETUNE_NEEDS_SCENE, AttackContext, parse_
 from ..config import SceneSpec, TrainConfig, apply_overrides
 from ..io import save_scaffold
 from ..io.scaffold import MLP_FILES, POINT_CLOUD_FILE
-from ..robustness import KeyViews, attacked_copy, reference_hidden, score_release
+from ..robustness import attacked_copy, reference_hidden, score_release
 from ..runs import RunFolder
-from ..secure.container import open_container
+from ..secure.container import KeyViews, open_container
 from . import common
 from .common import CommandError
 from .secure import SECURE_FLAGS, passphrase_from

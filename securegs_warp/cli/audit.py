@@ -6,9 +6,8 @@ import json
 
 import torch
 
-from ..data import Camera
 from ..secure import steganalysis
-from ..secure.container import open_container
+from ..secure.container import KeyViews, open_container
 from . import common
 from .secure import passphrase_from
 
@@ -22,9 +21,7 @@ def cmd_audit(args) -> int:
     ref = steganalysis.release_arrays(reference) if reference is not None else None
     report = steganalysis.audit(release, ref)
     if model.renders_hidden:
-        hidden_views = set(meta.get("hidden_views", []))
-        cams = [cam for cam in (Camera.from_record(r) for r in meta.get("cameras", [])) if cam.name in hidden_views]
-        points = steganalysis.hidden_surface(model, cams)
+        points = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
         if len(points):
             report.update(steganalysis.leakage(release["xyz"], points, None if ref is None else ref["xyz"]))
     if args.json:

@@ -15,7 +15,7 @@ from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
-from ..secure.container import open_container, save_container
+from ..secure.container import KeyViews, open_container, save_container
 from ..secure.payload import PayloadSpec
 from ..secure.security import exposure
 from . import common
@@ -194,9 +194,6 @@ def write_demo_renders(trainer, run: RunFolder) -> None:
 
 @torch.no_grad()
 def cmd_reveal(args) -> int:
-    from ..rasterizer import RasterOptions
-    from ..config import from_dict
-
     device = common.resolve_device(args.device)
     common.quiet_warp()
     model, meta = open_container(args.release, args.key, passphrase_from(args), device=device)
@@ -211,21 +208,18 @@ def cmd_reveal(args) -> int:
             save_png(out.renders / png_name(cam.name, "public_"), model.render(cam)["image"].clamp(0, 1))
         print(f"no key: rendered the cover scene only ({len(cams)} views in {out.renders})")
         return 0
-    raster = from_dict(RasterOptions, meta.get("raster", {}), "key raster options")
-    cams = [Camera.from_record(r) for r in meta.get("cameras", [])]
-    background = None if meta.get("background") is None else torch.tensor(meta["background"], device=device)
-    for cam in cams:
+    views = KeyViews.from_metadata(meta, device)
+    for cam in views.cameras:
         save_png(out.renders / png_name(cam.name, "public_"),
-                 model.render(cam, raster, background=background)["image"].clamp(0, 1))
+                 model.render(cam, views.raster, background=views.background)["image"].clamp(0, 1))
     if model.private.bits is not None:
         bits = model.decode_bits()
         print("bits:", "".join(str(int(b)) for b in bits))
         out.write_json(out.path / "bits.json", {"bits": bits.tolist()})
     if model.renders_hidden:
-        hidden_bg = torch.tensor(meta["hidden_background"], device=device, dtype=torch.float32)
-        hidden_cams = [cam for cam in cams if cam.name in set(meta.get("hidden_views", []))]
+        hidden_cams = views.hidden
         for cam in hidden_cams:
-            r = model.render_hidden(cam, raster, background=hidden_bg)
+            r = model.render_hidden(cam, views.raster, background=views.hidden_background)
             save_png(out.renders / png_name(cam.name, "hidden_"), r["image"].clamp(0, 1))
         g = model.hidden_gaussians(hidden_cams[0])
         ply = out.path / "hidden_3dgs.ply"

@@ -10,11 +10,17 @@ backgrounds and the rasterizer options. The key holder needs neither the trainin
 """
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
+import torch
+
+from ..config import from_dict
+from ..data import Camera
 from ..io import load_scaffold, save_scaffold
 from ..keys import KeyFileError, container_fingerprint, load_key, save_key
 from ..model import ScaffoldHeads
+from ..rasterizer import RasterOptions
 from .heads import PrivateHeads
 from .model import SecureModel
 
@@ -76,3 +82,32 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
     except (KeyError, TypeError, RuntimeError) as e:
         raise KeyFileError(f"{key}: the key's heads do not fit this release ({e})") from None
     return SecureModel(anchors, heads, private), metadata
+
+
+@dataclasses.dataclass
+class KeyViews:
+    """What a key's metadata says about rendering (written by ``cli.secure.key_metadata``): the one
+    reader of it, for reveal, audit and attack.
+
+    cameras: every camera the key stores; hidden: those that show the hidden payload. raster: the
+    rasterizer options. background, hidden_background: [3] colours (None: black). message: [L] 0/1
+    int64, or None without bits.
+    """
+
+    cameras: list[Camera]
+    hidden: list[Camera]
+    raster: RasterOptions
+    background: torch.Tensor | None
+    hidden_background: torch.Tensor | None
+    message: torch.Tensor | None
+
+    @classmethod
+    def from_metadata(cls, meta: dict, device) -> "KeyViews":
+        cams = [Camera.from_record(r) for r in meta.get("cameras", [])]
+        names = set(meta.get("hidden_views", []))
+        colour = lambda v: None if v is None else torch.tensor(v, dtype=torch.float32, device=device)  # noqa: E731
+        message = meta.get("heads", {}).get("message")  # the keyed bit decoder's message
+        return cls(cams, [c for c in cams if c.name in names],
+                   from_dict(RasterOptions, meta.get("raster", {}), "key raster options"),
+                   colour(meta.get("background")), colour(meta.get("hidden_background")),
+                   None if message is None else torch.tensor([int(b) for b in message], device=device))
