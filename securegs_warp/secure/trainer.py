@@ -38,10 +38,9 @@ class SecureTrainer(ScaffoldTrainer):
 
     def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
         self.secure = secure
-        self.spec = PayloadSpec.parse(secure.payload)
         self.robust = parse_robust(secure.robust) if secure.robust else []
         # Built before the model, so that a payload the scene cannot carry fails before training.
-        self.payload = build_payload(self.spec, scene, torch.device(device))
+        self.payload = build_payload(PayloadSpec.parse(secure.payload), scene, torch.device(device))
         if secure.hidden_weight is not None:
             self.payload.weight = float(secure.hidden_weight)
         # The bit decoder's seed is secret like the message (not from the training seed, which
@@ -49,7 +48,7 @@ class SecureTrainer(ScaffoldTrainer):
         self.bit_seed = new_seed() if self.payload.bits is not None else None
         strategy = secure.strategy.scaled_to(config.iterations)
         strategy.hidden_weight = self.payload.weight  # ∇_hid per unit of ℓ_hid (RegionAwareStrategy)
-        strategy.use_bbox = self.spec.kind in ("object", "image")
+        strategy.use_bbox = self.payload.spec.kind in ("object", "image")
         super().__init__(scene, config, device=device, strategy=strategy)
 
     def _make_model(self, anchors, heads) -> SecureModel:
@@ -59,7 +58,7 @@ class SecureTrainer(ScaffoldTrainer):
                                **options).to(anchors.xyz.device)
         if options["frame"] == "box" and private.decoder is not None:
             bounds = getattr(self.scene, "hidden_bbox", None)
-            if bounds is None or self.spec.kind != "object":
+            if bounds is None or self.payload.spec.kind != "object":
                 raise ValueError("hidden_frame 'box' decodes a hidden object inside its bounds: it needs an object "
                                  "payload on a scene that knows the object's box")
             lo, hi = np.asarray(bounds, dtype=np.float32)
