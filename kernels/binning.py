@@ -2,7 +2,9 @@
 
 Pipeline (driven by ``securegs_warp.rasterizer``):
 1. ``count_tiles``: tiles covered by each Gaussian's screen rectangle (int64: 3M Gaussians times
-   dozens of tiles overflows int32).
+   dozens of tiles overflows int32); with ``exact`` only the tiles of that rectangle that the
+   Gaussian's ellipse at the alpha threshold reaches (``reaches_tile``, Speedy-Splat's AccuTile):
+   a thin diagonal Gaussian touches a band of tiles, not its whole bounding square.
 2. inclusive prefix sum of the counts (``wp.utils.array_scan``): its last entry is the total, read
    on the host (the render's one synchronisation); each Gaussian writes at ``ends[i] - counts[i]``.
 3. ``emit_intersections``: one 64-bit key per (Gaussian, tile): tile id in the high 32 bits, the
@@ -32,10 +34,76 @@ def tile_rect(mean2d: wp.vec2, radius: wp.vec2i, tile_size: int, tiles_x: int, t
     return wp.vec4i(x0, y0, x1, y1)
 
 
+# Slack of the ellipse test in sigma = -ln(alpha / opacity) units: the blending kernel evaluates sigma
+# in float32 at pixel centres, so a tile whose exact minimum lies a rounding error beyond the
+# threshold may still receive a pixel with alpha >= alpha_min. 1e-3 absolute plus 1e-4 of the
+# quadratic form's terms is far above float32 rounding and keeps only a sliver of extra tiles.
+_SIGMA_SLACK_ABS = 1.0e-3
+_SIGMA_SLACK_REL = 1.0e-4
+
+
+@wp.func
+def edge_sigma(conic: wp.vec3d, fixed: wp.float64, lo: wp.float64, hi: wp.float64, fixed_is_x: bool) -> wp.vec2d:
+    """(min sigma, its terms' magnitude) along one edge of a rectangle in offsets from the centre:
+    sigma(dx, dy) = ½(a·dx² + c·dy²) + b·dx·dy with ``fixed`` the edge's dx (``fixed_is_x``) or dy."""
+    a = conic[0]
+    b = conic[1]
+    c = conic[2]
+    # sigma along the edge is ½·q·t² + b·fixed·t + ½·p·fixed², minimal at t = −b·fixed/q, clamped.
+    q = c
+    p = a
+    if not fixed_is_x:
+        q = a
+        p = c
+    t = wp.clamp(-b * fixed / q, lo, hi)
+    half = wp.float64(0.5)
+    value = half * (q * t * t + p * fixed * fixed) + b * fixed * t
+    scale = half * (q * t * t + p * fixed * fixed) + wp.abs(b * fixed * t)
+    return wp.vec2d(value, scale)
+
+
+@wp.func
+def reaches_tile(mean2d: wp.vec2, conic: wp.vec3, opacity: float, alpha_min: float, tx: int, ty: int,
+                 tile_size: int) -> bool:
+    """Whether some point of tile (tx, ty)'s pixel-centre rectangle has opacity·e^(−sigma) >= alpha_min
+    (up to ``_SIGMA_SLACK_*``): the exact minimum of the convex sigma over the rectangle, which is 0
+    when the centre is inside and otherwise lies on one of its four edges. float64: the 1D minimum
+    cancels for very anisotropic conics."""
+    if opacity < alpha_min:
+        return False
+    limit = wp.float64(wp.log(opacity / alpha_min))
+    ts = float(tile_size)
+    # Offsets (pixel centre − mean) of the tile's first and last pixel centres.
+    x0 = wp.float64(float(tx) * ts + 0.5 - mean2d[0])
+    x1 = wp.float64(float(tx) * ts + ts - 0.5 - mean2d[0])
+    y0 = wp.float64(float(ty) * ts + 0.5 - mean2d[1])
+    y1 = wp.float64(float(ty) * ts + ts - 0.5 - mean2d[1])
+    zero = wp.float64(0.0)
+    if x0 <= zero and zero <= x1 and y0 <= zero and zero <= y1:
+        return True
+    cd = wp.vec3d(wp.float64(conic[0]), wp.float64(conic[1]), wp.float64(conic[2]))
+    best = edge_sigma(cd, x0, y0, y1, True)
+    other = edge_sigma(cd, x1, y0, y1, True)
+    if other[0] < best[0]:
+        best = other
+    other = edge_sigma(cd, y0, x0, x1, False)
+    if other[0] < best[0]:
+        best = other
+    other = edge_sigma(cd, y1, x0, x1, False)
+    if other[0] < best[0]:
+        best = other
+    slack = wp.float64(_SIGMA_SLACK_ABS) + wp.float64(_SIGMA_SLACK_REL) * best[1]
+    return best[0] <= limit + slack
+
+
 @wp.kernel
 def count_tiles(
     means2d: wp.array(dtype=wp.vec2),
     radii: wp.array(dtype=wp.vec2i),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    alpha_min: float,
+    exact: int,
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
@@ -46,7 +114,16 @@ def count_tiles(
     n = wp.int64(0)
     if r[0] > 0 and r[1] > 0:
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
-        n = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
+        if exact != 0:
+            xy = means2d[i]
+            cn = conics[i]
+            op = opacities[i]
+            for ty in range(rect[1], rect[3]):
+                for tx in range(rect[0], rect[2]):
+                    if reaches_tile(xy, cn, op, alpha_min, tx, ty, tile_size):
+                        n += wp.int64(1)
+        else:
+            n = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
     counts[i] = n
 
 
@@ -54,6 +131,10 @@ def count_tiles(
 def emit_intersections(
     means2d: wp.array(dtype=wp.vec2),
     radii: wp.array(dtype=wp.vec2i),
+    conics: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    alpha_min: float,
+    exact: int,
     depth_bits: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int64),
     ends: wp.array(dtype=wp.int64),
@@ -69,11 +150,15 @@ def emit_intersections(
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
         low = wp.int64(depth_bits[i]) & wp.int64(0xFFFFFFFF)
         k = ends[i] - counts[i]
+        xy = means2d[i]
+        cn = conics[i]
+        op = opacities[i]
         for ty in range(rect[1], rect[3]):
             for tx in range(rect[0], rect[2]):
-                keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | low
-                values[k] = i
-                k += wp.int64(1)
+                if exact == 0 or reaches_tile(xy, cn, op, alpha_min, tx, ty, tile_size):
+                    keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | low
+                    values[k] = i
+                    k += wp.int64(1)
 
 
 @wp.kernel

@@ -59,7 +59,8 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
         quats: wp.array(dtype=wp.vec4),
         scales: wp.array(dtype=wp.vec3),
         opacities: wp.array(dtype=float),
-        camera: wp.array(dtype=wp.float64),
+        viewmat: wp.array(dtype=float),
+        intrinsics: wp.array(dtype=float),
         width: int,
         height: int,
         near: float,
@@ -74,14 +75,16 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
         opacities_out: wp.array(dtype=float),
     ):
         i = wp.tid()
-        # camera = [row-major world-to-camera 4×4, fx, fy, cx, cy], on the device: no host sync.
-        rot = wp.mat33d(camera[0], camera[1], camera[2], camera[4], camera[5], camera[6],
-                        camera[8], camera[9], camera[10])
-        trans = wp.vec3d(camera[3], camera[7], camera[11])
-        fx = wp.float32(camera[16])
-        fy = wp.float32(camera[17])
-        cx = wp.float32(camera[18])
-        cy = wp.float32(camera[19])
+        # viewmat: row-major world-to-camera 4×4; intrinsics: row-major K (3×3). Both are read on the
+        # device, so a render copies nothing from the host.
+        rot = wp.mat33d(wp.float64(viewmat[0]), wp.float64(viewmat[1]), wp.float64(viewmat[2]),
+                        wp.float64(viewmat[4]), wp.float64(viewmat[5]), wp.float64(viewmat[6]),
+                        wp.float64(viewmat[8]), wp.float64(viewmat[9]), wp.float64(viewmat[10]))
+        trans = wp.vec3d(wp.float64(viewmat[3]), wp.float64(viewmat[7]), wp.float64(viewmat[11]))
+        fx = intrinsics[0]
+        fy = intrinsics[4]
+        cx = intrinsics[2]
+        cy = intrinsics[5]
         m = means[i]
         # float64 rigid transform (see module docstring), rounded once to float32.
         md = wp.vec3d(wp.float64(m[0]), wp.float64(m[1]), wp.float64(m[2]))
