@@ -12,6 +12,9 @@ Pipeline (driven by ``securegs_warp.rasterizer``):
    sort like the values; sign extension would corrupt the tile id).
 4. ``wp.utils.radix_sort_pairs`` on the keys (stable, so equal depths keep Gaussian order).
 5. ``tile_ranges``: [start, end) of each tile's run in the sorted list.
+
+A captured render (``RasterOptions.capture``) cannot read the count on the host: it sorts a fixed
+capacity whose unused keys hold a padding tile id (one past the last tile), which sorts last.
 """
 import warp as wp
 
@@ -141,6 +144,7 @@ def emit_intersections(
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
+    capacity: wp.int64,
     keys: wp.array(dtype=wp.int64),
     values: wp.array(dtype=wp.int32),
 ):
@@ -156,8 +160,10 @@ def emit_intersections(
         for ty in range(rect[1], rect[3]):
             for tx in range(rect[0], rect[2]):
                 if exact == 0 or reaches_tile(xy, cn, op, alpha_min, tx, ty, tile_size):
-                    keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | low
-                    values[k] = i
+                    # A render with a fixed capacity drops what does not fit (and reports it).
+                    if k < capacity:
+                        keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | low
+                        values[k] = i
                     k += wp.int64(1)
 
 
@@ -165,10 +171,13 @@ def emit_intersections(
 def tile_ranges(keys: wp.array(dtype=wp.int64), count: int, ranges: wp.array2d(dtype=wp.int32)):
     """ranges[t] = [start, end) in the sorted list; tiles without Gaussians stay [0, 0).
 
-    Start and end of one tile are written by different threads, hence one int per slot.
+    Start and end of one tile are written by different threads, hence one int per slot. Keys with a
+    tile id past the last tile are the padding of a fixed-capacity list (they sort last) and skipped.
     """
     i = wp.tid()
     tile = int(keys[i] >> wp.int64(32))
+    if tile >= ranges.shape[0]:
+        return
     if i == 0 or int(keys[i - 1] >> wp.int64(32)) != tile:
         ranges[tile, 0] = i
     if i == count - 1 or int(keys[i + 1] >> wp.int64(32)) != tile:

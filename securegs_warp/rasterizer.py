@@ -1,9 +1,10 @@
 """``rasterize``: the differentiable Warp rasterizer as a torch autograd op.
 
-One ``wp.Tape`` records a whole render: the projection kernel (Warp's generated adjoint) and the
-blending kernel, whose hand-written adjoint is put on the same tape with ``Tape.record_func``.
-Torch tensors are shared with Warp through ``wp.from_torch`` (no copies); Warp runs on the torch
-device of the inputs and on torch's current stream, so the CPU and CUDA share one code path.
+A ``RenderPlan`` holds one render's Warp views and launches: projection (its adjoint is Warp's
+generated one), binning, and blending (hand-written adjoint). Torch tensors are shared with Warp
+through ``wp.from_torch`` (no copies); Warp runs on the torch device of the inputs and on torch's
+current stream, so the CPU and CUDA share one code path. ``RasterOptions.capture`` replays a plan
+kept per shape from Warp graphs (``securegs_warp.raster_graph``).
 """
 from __future__ import annotations
 
@@ -58,6 +59,14 @@ class RasterOptions:
     # alpha_min at some pixel centre (an exact ellipse–rectangle test; kernels/binning.py). The image
     # is the same as "rectangle"'s (gsplat's binning): the dropped tiles receive no contribution.
     tile_overlap: str = "ellipse"
+    # Replay the forward (projection → binning → blend) and the backward as Warp graphs kept per
+    # input shape, for loops that render the same N, C and image size again and again: no host
+    # launches or synchronisations per render. The sort runs over a fixed intersection capacity (the
+    # first render's count with headroom); a later render that needs more, or has non-finite
+    # inputs, raises at the next captured call of that shape (securegs_warp/raster_graph.py). Same
+    # images and gradients as eager. On the CPU it runs the same fixed-capacity launches without a
+    # graph.
+    capture: bool = False
     # CUDA launch shape only (results do not depend on it): threads per block of the forward and
     # backward blending kernels; a block owns that many pixels of a tile and shares each batch of
     # Gaussians between them. 256 because backward blocks of 256 measured faster than blocks of 32
@@ -202,13 +211,10 @@ def rasterize(
     if color_table is not colors:
         checked["colors (as float16: |value| > 65504)"] = color_table
     # Finiteness is checked on the device and read back with the intersection count (one sync):
-    # one fused max-|value| reduction over all inputs (NaN and inf propagate through it; empty
-    # tensors have no maximum and are finite).
-    nonempty = [t for t in checked.values() if t.numel()]
-    finite = torch.ones(len(checked), dtype=torch.bool, device=means.device)
-    if nonempty:
-        finite[[i for i, t in enumerate(checked.values()) if t.numel()]] = \
-            torch.stack(torch._foreach_norm(nonempty, math.inf)).isfinite()
+    # one fused max-|value| reduction over the inputs (NaN and inf propagate through it; an empty
+    # tensor has no maximum and nothing to check).
+    checked = {name: t for name, t in checked.items() if t.numel()}
+    flags = torch.stack(torch._foreach_norm(list(checked.values()), math.inf)).isfinite() if checked else None
     n = means.shape[0]
     info = {
         "means2d_grad": torch.zeros(n, 2, device=means.device, dtype=torch.float32),
@@ -216,11 +222,15 @@ def rasterize(
         "width": int(width),
         "height": int(height),
     }
-    camera = (viewmat.detach().reshape(16), K.detach().reshape(9))
-    image, alpha, depth, radii, means2d, conics, depths, opac, n_isect = _Rasterize.apply(
-        means, quats, scales, opacities, colors, color_table, background, camera, int(width), int(height), opts,
-        info, (tuple(checked), finite),
-    )
+    inputs = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, color_table=color_table,
+                  background=background, viewmat=viewmat.detach().reshape(16), K=K.detach().reshape(9))
+    if opts.capture:
+        from .raster_graph import rasterize_captured  # noqa: PLC0415 (it builds on this module)
+
+        outputs = rasterize_captured(inputs, int(width), int(height), opts, info, (tuple(checked), flags))
+    else:
+        outputs = _Rasterize.apply(*inputs.values(), int(width), int(height), opts, info, (tuple(checked), flags))
+    image, alpha, depth, radii, means2d, conics, depths, opac, n_isect = outputs
     info.update(radii=radii, means2d=means2d, conics=conics, depths=depths, opacities=opac, n_intersections=n_isect)
     if opts.render_depth == "accumulated":
         info["depth"] = depth
@@ -264,157 +274,232 @@ def _validated(means, quats, scales, opacities, colors, viewmat, K, width, heigh
 def _wp(t: torch.Tensor, dtype, grad: bool = False, retain_grad: bool = False):
     """Warp view of a contiguous torch tensor; with ``grad``, a zeroed torch-backed gradient too.
 
-    ``retain_grad`` keeps the gradient of an intermediate array after the tape has consumed it.
+    ``retain_grad``: Warp's generated adjoints zero an output's gradient once they have read it,
+    unless the array keeps it (``means2d``'s: densification statistics).
     """
     if grad:
         return wp.from_torch(t, dtype=dtype, requires_grad=True, grad=torch.zeros_like(t), retain_grad=retain_grad)
     return wp.from_torch(t, dtype=dtype, requires_grad=False)
 
 
+def check_finite(finite) -> None:
+    """Raise ValueError naming the inputs whose flag is False; ``finite`` = (names, host flags)."""
+    names, flags = finite
+    bad = [name for name, flag in zip(names, flags) if not flag]
+    if bad:
+        raise ValueError(f"non-finite values (NaN or inf) in: {', '.join(bad)}")
+
+
+class RenderPlan:
+    """The Warp views of one render's inputs, intermediates, outputs and gradients, and the launches
+    between them. The eager op builds one per render; a captured render keeps one per shape and
+    replays its launches as Warp graphs (``securegs_warp.raster_graph``).
+
+    ``inputs``: name → tensor, as ``rasterize`` prepares them: means [N, 3], quats [N, 4],
+    scales [N, 3], opacities [N], colors [N, C], color_table [N, C] (colors or their float16 copy),
+    background [C], viewmat [16], K [9]; all float32 contiguous on one device. Outputs
+    (``self.out``): image [H, W, C], alpha [H, W, 1], depth [H, W, 1], radii [N, 2] int32,
+    means2d [N, 2], conics [N, 3], depths [N], opacities [N]; ``self.grads``: the gradients of
+    means, quats, scales, opacities, colors and background, filled by ``backward``.
+    """
+
+    def __init__(self, inputs: dict, width: int, height: int, opts: RasterOptions):
+        tdev = inputs["means"].device
+        self.device = wp.device_from_torch(tdev)
+        self.width, self.height, self.opts = width, height, opts
+        n, c = inputs["colors"].shape
+        self.n = n
+        f32 = dict(device=tdev, dtype=torch.float32)
+        ts = opts.tile_size
+        self.tiles_x, self.tiles_y = math.ceil(width / ts), math.ceil(height / ts)
+        self.n_tiles = self.tiles_x * self.tiles_y
+        self.out = {"image": torch.empty(height, width, c, **f32), "alpha": torch.empty(height, width, 1, **f32),
+                    "depth": torch.zeros(height, width, 1, **f32),
+                    "radii": torch.zeros(n, 2, device=tdev, dtype=torch.int32),
+                    "means2d": torch.zeros(n, 2, **f32), "conics": torch.zeros(n, 3, **f32),
+                    "depths": torch.zeros(n, **f32), "opacities": torch.zeros(n, **f32)}
+        self.transmittance = torch.empty(height, width, **f32)
+        self.last = torch.empty(height, width, device=tdev, dtype=torch.int32)
+        self.counts = torch.empty(n, device=tdev, dtype=torch.int64)
+        self.ends = torch.empty(n, device=tdev, dtype=torch.int64)
+        with wp.ScopedDevice(self.device):
+            w_in = {
+                "means": _wp(inputs["means"], wp.vec3, grad=True),
+                "quats": _wp(inputs["quats"], wp.vec4, grad=True),
+                "scales": _wp(inputs["scales"], wp.vec3, grad=True),
+                "opacities": _wp(inputs["opacities"], wp.float32, grad=True),
+                # Colours only reach the hand-written blend adjoint, which writes their float32
+                # gradient into colors_grad whatever the table's storage type.
+                "color_table": _wp(inputs["color_table"], COLOR_STORAGES[opts.color_storage]),
+                "colors_grad": _wp(torch.zeros_like(inputs["colors"]), wp.float32),
+                "background": _wp(inputs["background"], wp.float32, grad=True),
+                "viewmat": _wp(inputs["viewmat"], wp.float32),
+                "K": _wp(inputs["K"], wp.float32),
+            }
+            o = self.out
+            w_out = {
+                "means2d": _wp(o["means2d"], wp.vec2, grad=True, retain_grad=True),
+                "conics": _wp(o["conics"], wp.vec3, grad=True),
+                "depths": _wp(o["depths"], wp.float32, grad=True),
+                "opac_out": _wp(o["opacities"], wp.float32, grad=True),  # after antialiasing
+                "radii": _wp(o["radii"], wp.vec2i),
+                "image": _wp(o["image"], wp.float32, grad=True),
+                "alpha": _wp(o["alpha"], wp.float32, grad=True),
+                "depth": _wp(o["depth"], wp.float32, grad=True),
+                "transmittance": _wp(self.transmittance, wp.float32),
+                "last": _wp(self.last, wp.int32),
+                "counts": _wp(self.counts, wp.int64),
+                "ends": _wp(self.ends, wp.int64),
+                "depth_bits": wp.from_torch(o["depths"].view(torch.int32), dtype=wp.int32),
+                "ranges": wp.zeros((self.n_tiles, 2), dtype=wp.int32),
+            }
+        self.w = {**w_in, **w_out}
+        self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
+            wp.to_torch(self.w["colors_grad"]), wp.to_torch(self.w["background"].grad)]
+        self.out_grads = [wp.to_torch(self.w[k].grad) for k in ("image", "alpha", "depth")]
+        self.means2d_grad = wp.to_torch(self.w["means2d"].grad)
+        w = self.w
+        self._projection = dict(
+            kernel=projection_kernel(opts.antialiased, opts.radius_rule, opts.fast_math), dim=n,
+            inputs=[w["means"], w["quats"], w["scales"], w["opacities"], w["viewmat"], w["K"], width, height,
+                    opts.near_plane, opts.far_plane, opts.eps2d, opts.alpha_min, opts.radius_clip],
+            outputs=[w["means2d"], w["conics"], w["depths"], w["radii"], w["opac_out"]],
+        )
+        self.keys = self.values = None
+        with_depth = opts.render_depth is not None
+        cooperative = not (self.device.is_cpu and not wp.config.enable_cpu_blocks)
+        self._fwd_block = opts.block(opts.forward_block)
+        self._bwd_block = opts.block(opts.backward_block)
+        batch = batch_size(c, self._fwd_block, with_depth, opts.color_storage) if cooperative else CPU_BATCH
+        self._blend = blend_kernels(c, ts, with_depth, batch, cooperative, opts.color_storage, opts.fast_math)
+
+    def scoped(self):
+        """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
+        return _Scope(self.device, self.out["image"].device)
+
+    def project_and_count(self) -> None:
+        """Projection and the per-Gaussian tile counts with their inclusive prefix sum:
+        ``self.ends[-1]`` is the number of intersections."""
+        w, opts = self.w, self.opts
+        wp.launch(**self._projection)
+        if self.n == 0:
+            return
+        wp.launch(binning.count_tiles, dim=self.n,
+                  inputs=[w["means2d"], w["radii"], *self._overlap(), opts.tile_size, self.tiles_x, self.tiles_y],
+                  outputs=[w["counts"]])
+        wp.utils.array_scan(w["counts"], w["ends"], inclusive=True)
+
+    def _overlap(self):
+        opts = self.opts
+        return [self.w["conics"], self.w["opac_out"], opts.alpha_min, int(opts.tile_overlap == "ellipse")]
+
+    def allocate_intersections(self, capacity: int) -> None:
+        """Key and value buffers for ``capacity`` intersections (radix_sort_pairs needs twice that)."""
+        self.capacity = capacity
+        with wp.ScopedDevice(self.device):
+            self.keys = wp.empty(max(2 * capacity, 2), dtype=wp.int64)
+            self.values = wp.empty(max(2 * capacity, 2), dtype=wp.int32)
+
+    def sort_intersections(self, count: int, padded: bool) -> None:
+        """Emit, sort and range the intersections: ``count`` of them exactly (eager), or, ``padded``,
+        the whole capacity with padding keys past the last tile (captured: the count stays on the device)."""
+        w, opts = self.w, self.opts
+        self.w["ranges"].zero_()
+        if count == 0:
+            return
+        # The padding tile id must fit the sorted bits: tile ids 0 .. n_tiles.
+        tile_bits = max(1, int(self.n_tiles).bit_length())
+        if padded:
+            self.keys.fill_(self.n_tiles << 32)
+        wp.launch(binning.emit_intersections, dim=self.n,
+                  inputs=[w["means2d"], w["radii"], *self._overlap(), w["depth_bits"], w["counts"], w["ends"],
+                          opts.tile_size, self.tiles_x, self.tiles_y, self.capacity],
+                  outputs=[self.keys, self.values])
+        wp.utils.radix_sort_pairs(self.keys, self.values, count, end_bit=32 + tile_bits)
+        wp.launch(binning.tile_ranges, dim=count, inputs=[self.keys, count], outputs=[w["ranges"]])
+
+    def _blend_args(self):
+        w, opts = self.w, self.opts
+        return [w["ranges"], self.values, w["means2d"], w["conics"], w["opac_out"], w["color_table"], w["depths"],
+                w["background"], self.width, self.height, self.tiles_x, opts.alpha_min, opts.alpha_max]
+
+    def blend(self) -> None:
+        w, ts = self.w, self.opts.tile_size
+        wp.launch(self._blend[0], dim=(self.n_tiles, ts * ts), block_dim=self._fwd_block,
+                  inputs=self._blend_args() + [self.opts.transmittance_min],
+                  outputs=[w["image"], w["alpha"], w["depth"], w["transmittance"], w["last"]])
+
+    def backward(self) -> None:
+        """Blend adjoint, then the projection adjoint: accumulates into ``self.grads`` and
+        ``means2d``'s gradient from the output gradients (``self.out_grads``)."""
+        w, ts = self.w, self.opts.tile_size
+        wp.launch(self._blend[1], dim=(self.n_tiles, ts * ts), block_dim=self._bwd_block,
+                  inputs=self._blend_args() + [w["transmittance"], w["last"], w["image"].grad, w["alpha"].grad,
+                                               w["depth"].grad],
+                  outputs=[w["means2d"].grad, w["conics"].grad, w["opac_out"].grad, w["colors_grad"],
+                           w["depths"].grad, w["background"].grad])
+        # Warp's generated adjoint of the projection, launched as wp.Tape would launch it.
+        adjoints = {key: [a.grad if isinstance(a, wp.array) else None for a in self._projection[key]]
+                    for key in ("inputs", "outputs")}
+        wp.launch(**self._projection, adj_inputs=adjoints["inputs"], adj_outputs=adjoints["outputs"], adjoint=True)
+
+
+class _Scope:
+    """``with``: Warp's device and (on CUDA) torch's current stream."""
+
+    def __init__(self, device, torch_device: torch.device):
+        self.scopes = [wp.ScopedDevice(device)]
+        if torch_device.type == "cuda":
+            self.scopes.append(wp.ScopedStream(wp.stream_from_torch(torch_device)))
+
+    def __enter__(self):
+        for s in self.scopes:
+            s.__enter__()
+
+    def __exit__(self, *exc):
+        for s in reversed(self.scopes):
+            s.__exit__(*exc)
+
+
+OUTPUT_NAMES = ("image", "alpha", "depth", "radii", "means2d", "conics", "depths", "opacities")
+
+
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, color_table, background, camera, width, height, opts,
-                info, finite):
+    def forward(ctx, means, quats, scales, opacities, colors, color_table, background, viewmat, K, width, height,
+                opts, info, finite):
         wp.init()  # idempotent; Warp must be up before its devices can be named
-        device = wp.device_from_torch(means.device)
-        n, c = colors.shape
-        tdev = means.device
-        f32 = dict(device=tdev, dtype=torch.float32)
-        with_depth = opts.render_depth is not None
-        ts = opts.tile_size
-        tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
-
-        with wp.ScopedDevice(device), wp.ScopedStream(_stream(means.device)):
-            w_means = _wp(means, wp.vec3, grad=True)
-            w_quats = _wp(quats, wp.vec4, grad=True)
-            w_scales = _wp(scales, wp.vec3, grad=True)
-            w_opac = _wp(opacities, wp.float32, grad=True)
-            # Colours only reach the hand-written blend adjoint, which writes their float32 gradient
-            # here whatever the table's storage type.
-            w_colors = _wp(color_table, COLOR_STORAGES[opts.color_storage])
-            w_colors_grad = _wp(torch.zeros_like(colors), wp.float32)
-            w_bg = _wp(background, wp.float32, grad=True)
-
-            means2d = torch.zeros(n, 2, **f32)
-            conics = torch.zeros(n, 3, **f32)
-            depths = torch.zeros(n, **f32)
-            opac_out = torch.zeros(n, **f32)
-            radii = torch.zeros(n, 2, device=tdev, dtype=torch.int32)
-            w_means2d = _wp(means2d, wp.vec2, grad=True, retain_grad=True)  # densification statistics
-            w_conics = _wp(conics, wp.vec3, grad=True)
-            w_depths = _wp(depths, wp.float32, grad=True)
-            w_opac_out = _wp(opac_out, wp.float32, grad=True)
-            w_radii = _wp(radii, wp.vec2i)
-
-            w_viewmat, w_K = (_wp(t, wp.float32) for t in camera)
-            tape = wp.Tape()
-            with tape:
-                wp.launch(
-                    projection_kernel(opts.antialiased, opts.radius_rule, opts.fast_math),
-                    dim=n,
-                    inputs=[w_means, w_quats, w_scales, w_opac, w_viewmat, w_K, width, height,
-                            opts.near_plane, opts.far_plane, opts.eps2d, opts.alpha_min, opts.radius_clip],
-                    outputs=[w_means2d, w_conics, w_depths, w_radii, w_opac_out],
-                )
-
-            ranges, sorted_ids, n_isect = _bin(w_means2d, w_radii, w_conics, w_opac_out, depths, opts, tiles_x,
-                                               tiles_y, finite)
-
-            image = torch.empty(height, width, c, **f32)
-            alpha = torch.empty(height, width, 1, **f32)
-            depth_img = torch.zeros(height, width, 1, **f32)
-            transmittance = torch.empty(height, width, **f32)
-            last = torch.empty(height, width, device=tdev, dtype=torch.int32)
-            w_image = _wp(image, wp.float32, grad=True)
-            w_alpha = _wp(alpha, wp.float32, grad=True)
-            w_depth_img = _wp(depth_img, wp.float32, grad=True)
-            w_trans = _wp(transmittance, wp.float32)
-            w_last = _wp(last, wp.int32)
-
-            cooperative = not (device.is_cpu and not wp.config.enable_cpu_blocks)
-            fwd_block = opts.block(opts.forward_block)
-            batch = batch_size(c, fwd_block, with_depth, opts.color_storage) if cooperative else CPU_BATCH
-            fwd, bwd = blend_kernels(c, ts, with_depth, batch, cooperative, opts.color_storage, opts.fast_math)
-            common = [ranges, sorted_ids, w_means2d, w_conics, w_opac_out, w_colors, w_depths, w_bg,
-                      width, height, tiles_x, opts.alpha_min, opts.alpha_max]
-            lanes = ts * ts  # one thread per pixel of a tile
-            wp.launch(fwd, dim=(tiles_x * tiles_y, lanes), block_dim=fwd_block,
-                      inputs=common + [opts.transmittance_min],
-                      outputs=[w_image, w_alpha, w_depth_img, w_trans, w_last])
-
-            def blend_adjoint():
-                wp.launch(bwd, dim=(tiles_x * tiles_y, lanes), block_dim=opts.block(opts.backward_block),
-                          inputs=common + [w_trans, w_last, w_image.grad, w_alpha.grad, w_depth_img.grad],
-                          outputs=[w_means2d.grad, w_conics.grad, w_opac_out.grad, w_colors_grad,
-                                   w_depths.grad, w_bg.grad])
-
-            tape.record_func(blend_adjoint, arrays=[w_image, w_alpha, w_depth_img])
-
-        ctx.tape = tape
-        ctx.device = means.device
+        inputs = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                      color_table=color_table, background=background, viewmat=viewmat, K=K)
+        plan = RenderPlan(inputs, width, height, opts)
+        with plan.scoped():
+            plan.project_and_count()
+            # The render's one host synchronisation: the intersection count and the finiteness flags.
+            names, flags = finite
+            parts = ([plan.ends[-1:]] if plan.n else []) + ([flags.long()] if flags is not None else [])
+            host = torch.cat(parts).tolist() if parts else []
+            n_isect = int(host[0]) if plan.n else 0
+            check_finite((names, host[1:] if plan.n else host))
+            if n_isect >= 2**31 - 1:
+                raise ValueError(f"{n_isect} tile intersections exceed the sort's int32 index range")
+            plan.allocate_intersections(n_isect)
+            plan.sort_intersections(n_isect, padded=False)
+            plan.blend()
+        ctx.plan = plan
         ctx.info = info
-        ctx.grads = (w_means.grad, w_quats.grad, w_scales.grad, w_opac.grad, w_colors_grad, w_bg.grad)
-        ctx.out_grads = (w_image.grad, w_alpha.grad, w_depth_img.grad)
-        ctx.means2d_grad = w_means2d.grad
-        ctx.mark_non_differentiable(radii, means2d, conics, depths, opac_out)
-        return image, alpha, depth_img, radii, means2d, conics, depths, opac_out, n_isect
+        ctx.mark_non_differentiable(*(plan.out[k] for k in OUTPUT_NAMES[3:]))
+        return (*(plan.out[k] for k in OUTPUT_NAMES), n_isect)
 
     @staticmethod
     def backward(ctx, g_image, g_alpha, g_depth, *_):
-        with wp.ScopedDevice(wp.device_from_torch(ctx.device)), wp.ScopedStream(_stream(ctx.device)):
-            for w_grad, g in zip(ctx.out_grads, (g_image, g_alpha, g_depth)):
+        plan = ctx.plan
+        with plan.scoped():
+            for buffer, g in zip(plan.out_grads, (g_image, g_alpha, g_depth)):
                 if g is not None:
-                    wp.to_torch(w_grad).copy_(g)
-            ctx.tape.backward()
-        ctx.info["means2d_grad"] += wp.to_torch(ctx.means2d_grad)
-        grads = [wp.to_torch(g) for g in ctx.grads]
-        ctx.tape = None  # release the Warp arrays
+                    buffer.copy_(g)
+            plan.backward()
+        ctx.info["means2d_grad"] += plan.means2d_grad
+        grads = plan.grads
+        ctx.plan = None  # release the Warp arrays
         # grads for means, quats, scales, opacities, colors (not color_table), background; none beyond.
-        return (*grads[:5], None, grads[5], None, None, None, None, None, None)
-
-
-def _stream(device: torch.device):
-    return wp.stream_from_torch(device) if device.type == "cuda" else None
-
-
-def _bin(w_means2d, w_radii, w_conics, w_opac, depths, opts, tiles_x, tiles_y, finite):
-    """Sorted (tile, depth) intersections → per-tile ranges [T, 2] and Gaussian ids (Warp arrays).
-
-    Tiles are those of each Gaussian's radius rectangle, or of them only those its ellipse reaches
-    (``opts.tile_overlap``).
-
-    ``finite`` = (input names, [inputs] bool device tensor): read back with the intersection count
-    in the render's single host synchronisation; a non-finite input raises ValueError naming it.
-    """
-    n = depths.shape[0]
-    n_tiles = tiles_x * tiles_y
-    tile_size = opts.tile_size
-    overlap = [w_conics, w_opac, opts.alpha_min, int(opts.tile_overlap == "ellipse")]
-    ranges = wp.zeros((n_tiles, 2), dtype=wp.int32)
-    counts = wp.empty(n, dtype=wp.int64)
-    wp.launch(binning.count_tiles, dim=n, inputs=[w_means2d, w_radii, *overlap, tile_size, tiles_x, tiles_y],
-              outputs=[counts])
-    ends = wp.empty(n, dtype=wp.int64)
-    names, ok = finite
-    host = [0] + ok.tolist() if n == 0 else None
-    if n > 0:
-        wp.utils.array_scan(counts, ends, inclusive=True)
-        host = torch.cat([wp.to_torch(ends)[-1:], ok.long()]).tolist()
-    bad = [name for name, flag in zip(names, host[1:]) if not flag]
-    if bad:
-        raise ValueError(f"non-finite values (NaN or inf) in: {', '.join(bad)}")
-    n_isect = int(host[0])
-    if n_isect >= 2**31 - 1:
-        raise ValueError(f"{n_isect} tile intersections exceed the sort's int32 index range")
-    # radix_sort_pairs needs room for 2x the pairs (its scratch space); keep at least one slot.
-    keys = wp.empty(max(2 * n_isect, 2), dtype=wp.int64)
-    values = wp.empty(max(2 * n_isect, 2), dtype=wp.int32)
-    if n_isect > 0:
-        depth_bits = wp.from_torch(depths.view(torch.int32), dtype=wp.int32)
-        wp.launch(binning.emit_intersections, dim=n,
-                  inputs=[w_means2d, w_radii, *overlap, depth_bits, counts, ends, tile_size, tiles_x, tiles_y],
-                  outputs=[keys, values])
-        tile_bits = max(1, int(n_tiles - 1).bit_length())
-        wp.utils.radix_sort_pairs(keys, values, n_isect, end_bit=32 + tile_bits)
-        wp.launch(binning.tile_ranges, dim=n_isect, inputs=[keys, n_isect], outputs=[ranges])
-    return ranges, values, n_isect
+        return (*grads[:5], None, grads[5], None, None, None, None, None, None, None)

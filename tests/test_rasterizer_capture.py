@@ -1,0 +1,99 @@
+"""``RasterOptions.capture``: the fixed-capacity render replayed from Warp graphs (CUDA) or run
+directly (CPU) gives the eager op's images, outputs and gradients; overflow and non-finite inputs raise."""
+import pytest
+import torch
+
+from securegs_warp import rasterize
+from securegs_warp import raster_graph
+from securegs_warp.raster_cases import DIFF_INPUTS, TEST_DEVICE, random_scene
+
+
+def render(scene, capture, backward=True, seed=5, **options):
+    """[image, alpha, radii, means2d, conics, depths, opacities, then each input's gradient], n_intersections."""
+    leaves = {name: getattr(scene, name).detach().clone().to(TEST_DEVICE).requires_grad_(backward)
+              for name in DIFF_INPUTS}
+    image, alpha, info = rasterize(**leaves, viewmat=scene.viewmat.to(TEST_DEVICE), K=scene.K.to(TEST_DEVICE),
+                                   width=scene.width, height=scene.height, capture=capture,
+                                   **{**scene.kwargs, **options})
+    out = [image, alpha] + [info[k] for k in ("radii", "means2d", "conics", "depths", "opacities")]
+    if backward:
+        g = torch.Generator().manual_seed(seed)
+        ((image * torch.randn(image.shape, generator=g).to(TEST_DEVICE)).sum()
+         + (alpha * torch.randn(alpha.shape, generator=g).to(TEST_DEVICE)).sum()).backward()
+        out += [leaves[name].grad for name in DIFF_INPUTS] + [info["means2d_grad"]]
+    return [t.detach().cpu() for t in out], int(info["n_intersections"])
+
+
+def assert_same(captured, eager):
+    (a, n_a), (b, n_b) = captured, eager
+    assert n_a == n_b
+    for x, y in zip(a[:7], b[:7]):
+        assert torch.equal(x, y)
+    for x, y in zip(a[7:], b[7:]):
+        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+
+
+@pytest.fixture(autouse=True)
+def fresh_pool():
+    raster_graph._POOL.clear()
+    yield
+    raster_graph._POOL.clear()
+
+
+@pytest.mark.parametrize("options", [{}, {"tile_size": 8, "render_depth": "accumulated"},
+                                     {"tile_overlap": "rectangle", "color_storage": "float16"}])
+def test_captured_matches_eager(options):
+    scene = random_scene(11, n=70, **options)
+    assert_same(render(scene, True), render(scene, False))
+
+
+def test_repeated_renders_reuse_one_entry_with_new_inputs():
+    first, second = random_scene(12, n=70), random_scene(13, n=70)
+    render(first, True)
+    assert_same(render(second, True), render(second, False))
+    assert [len(v) for v in raster_graph._POOL.values()] == [1]
+
+
+def test_two_renders_in_flight_keep_their_own_state():
+    a_scene, b_scene = random_scene(14, n=70), random_scene(15, n=70)
+    leaves = []
+    for scene in (a_scene, b_scene):
+        inputs = {name: getattr(scene, name).detach().clone().requires_grad_(True) for name in DIFF_INPUTS}
+        image, alpha, _ = rasterize(**inputs, viewmat=scene.viewmat, K=scene.K, width=scene.width,
+                                    height=scene.height, capture=True)
+        leaves.append((inputs, image, alpha))
+    # Both forwards before either backward, as a public and a hidden render in one step.
+    assert [len(v) for v in raster_graph._POOL.values()] == [2]
+    for (inputs, image, alpha), scene in zip(leaves, (a_scene, b_scene)):
+        (image.sum() + alpha.sum()).backward()
+        ref = {name: getattr(scene, name).detach().clone().requires_grad_(True) for name in DIFF_INPUTS}
+        ref_image, ref_alpha, _ = rasterize(**ref, viewmat=scene.viewmat, K=scene.K, width=scene.width,
+                                            height=scene.height)
+        (ref_image.sum() + ref_alpha.sum()).backward()
+        assert torch.equal(image, ref_image)
+        for name in DIFF_INPUTS:
+            torch.testing.assert_close(inputs[name].grad, ref[name].grad, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cpu", reason="on CUDA the check waits for the next call")
+def test_capacity_overflow_raises():
+    # Past the capacity's headroom and slack: ~70 small Gaussians, then 70 that cover the whole image.
+    small = random_scene(16, n=70, width=320, height=240, scale=(0.01, 0.02), tile_size=8)
+    render(small, True, backward=False)
+    large = random_scene(16, n=70, width=320, height=240, scale=(1.0, 2.0), tile_size=8)
+    with pytest.raises(RuntimeError, match="capacity"):
+        render(large, True, backward=False)
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cpu", reason="on CUDA the check waits for the next call")
+def test_non_finite_input_raises_naming_it():
+    scene = random_scene(17, n=70)
+    render(scene, True, backward=False)
+    scene.scales[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="scales"):
+        render(scene, True, backward=False)
+
+
+def test_no_gaussians():
+    scene = random_scene(18, n=0)
+    assert_same(render(scene, True), render(scene, False))
