@@ -1,9 +1,10 @@
 """Rasterizer speed, side by side with gsplat when it is installed.
 
-For each scene it renders the same inputs with ``securegs_warp.rasterize`` and ``gsplat.rasterization``
+For each scene it renders the same inputs with ``securegs_warp.rasterize`` (eager, and "captured":
+the same options with ``capture=true``, replayed from Warp graphs) and ``gsplat.rasterization``
 (classic, packed=False, same defaults), printing the forward and forward+backward medians, the
-ratio ours/gsplat, the largest image difference, and, on CUDA at 1M Gaussians, a per-kernel
-breakdown of our render with the same options as the timed run.
+ratios to gsplat, the largest image differences, and, on CUDA at 1M Gaussians, a per-kernel
+breakdown (torch.profiler) of every renderer's forward+backward, each with its own options.
 
     python scripts/bench_rasterizer.py                       # GPU: 100k, 1M, 3M at 1920×1080
     python scripts/bench_rasterizer.py --device cpu --sizes 2000 --width 320 --height 180 --runs 3
@@ -35,10 +36,14 @@ def main():
                                                           "(default: gsplat's defaults)")
     parser.add_argument("--variant", action="append", default=[],
                         help="extra configuration of ours timed alongside, e.g. b64:backward_block=64")
+    parser.add_argument("--no-captured", action="store_true",
+                        help="leave out the captured variant (--options with capture=true)")
     args = parser.parse_args()
     try:
         options = benchmark.parse_options(args.options)
         variants = [benchmark.parse_variant(text) for text in args.variant]
+        if not args.no_captured and not options.capture:
+            variants.insert(0, benchmark.parse_variant("captured:capture=true", options))
         sizes = [int(s) for s in args.sizes.split(",")]
     except ValueError as e:
         parser.error(str(e))

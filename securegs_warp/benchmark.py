@@ -16,7 +16,8 @@ Options on the command line:
 The rasterizer benchmark (scripts/bench_rasterizer.py):
     ``benchmark_scene`` times ``rasterize`` (and its variants, and ``gsplat.rasterization`` when it
     is installed and the device is CUDA) on one scene and returns a row of medians, ratios and image
-    differences, with ``kernel_breakdown``'s per-kernel CUDA times for the same options when asked;
+    differences, with ``kernel_breakdown``'s per-kernel CUDA times (torch.profiler) of each renderer
+    with its own options when asked;
     ``benchmark_table(rows, ...)`` is the markdown table of the rows.
 
 The accuracy-against-time sweeps (scripts/accuracy_vs_time.py):
@@ -225,16 +226,30 @@ def options_text(options: RasterOptions) -> str:
 # The rasterizer benchmark (scripts/bench_rasterizer.py)
 
 
-def kernel_breakdown(scene: dict, viewmat, K, width: int, height: int, options: RasterOptions | None = None):
-    """{kernel name (48 characters): GPU milliseconds} of one forward+backward of ``rasterize`` with
-    ``options``, largest first (Warp's CUDA activity timer; CUDA only)."""
-    with wp.ScopedTimer("render", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False) as timer:
-        image, alpha = ours(scene, viewmat, K, width, height, options)
-        (image.sum() + alpha.sum()).backward()
+def kernel_breakdown(fn, backward: bool, grads, runs: int = 5) -> dict:
+    """{kernel name (64 characters): GPU milliseconds per call} of ``fn`` (as ``timed`` takes it, with
+    a backward through it when ``backward``), largest first: every CUDA kernel, memset and copy that
+    torch.profiler (CUPTI) sees, Warp's and gsplat's alike, averaged over ``runs`` calls after one
+    untimed call. CUDA only."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    def once():
+        image, alpha = fn()
+        if backward:
+            (image * grads[0]).sum().add_((alpha * grads[1]).sum()).backward()
+
+    once()
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        for _ in range(runs):
+            once()
         torch.cuda.synchronize()
     totals = {}
-    for r in timer.timing_results:
-        totals[r.name[:48]] = totals.get(r.name[:48], 0.0) + r.elapsed
+    for event in prof.events():
+        if event.device_type == DeviceType.CUDA:
+            name = event.name[:64]
+            totals[name] = totals.get(name, 0.0) + event.time_range.elapsed_us() / 1000.0 / runs
     return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
 
 
@@ -246,8 +261,10 @@ def benchmark_scene(kind: str, n: int, width: int, height: int, device: str, opt
 
     Returns a row: scene, n, width, height; NAME_fwd_ms and NAME_fwdbwd_ms (medians of ``runs`` after
     ``warmup``) for every renderer; intersections and visible Gaussians of ours; with gsplat also
-    max_image_diff, pixels_over_1e-4, max_alpha_diff, fwd_ratio and fwdbwd_ratio (ours / gsplat);
-    with ``breakdown`` (CUDA only) breakdown_ms, ``kernel_breakdown`` with the same ``options``.
+    max_image_diff, pixels_over_1e-4, max_alpha_diff, fwd_ratio and fwdbwd_ratio (ours / gsplat), and
+    NAME_max_image_diff, NAME_fwd_ratio, NAME_fwdbwd_ratio for each variant; with ``breakdown``
+    (CUDA only) breakdown_ms: {renderer: ``kernel_breakdown`` of its forward+backward}, each
+    renderer with its own options.
     """
     options = options or RasterOptions()
     renderers = {"ours": lambda *a: ours(*a, options)}
@@ -263,8 +280,8 @@ def benchmark_scene(kind: str, n: int, width: int, height: int, device: str, opt
     viewmat, K = camera(width, height, device)
     grads = cotangents(width, height, device)
     row = {"scene": kind, "n": n, "width": width, "height": height}
-    for name, fn in renderers.items():
-        call = lambda fn=fn: fn(scene, viewmat, K, width, height)  # noqa: E731
+    calls = {name: (lambda fn=fn: fn(scene, viewmat, K, width, height)) for name, fn in renderers.items()}
+    for name, call in calls.items():
         with torch.no_grad():
             row[f"{name}_fwd_ms"] = timed(call, False, device, warmup, runs, grads)
         row[f"{name}_fwdbwd_ms"] = timed(call, True, device, warmup, runs, grads)
@@ -280,25 +297,39 @@ def benchmark_scene(kind: str, n: int, width: int, height: int, device: str, opt
             row["max_alpha_diff"] = float((alpha - ref_alpha).abs().max())
             row["fwd_ratio"] = row["ours_fwd_ms"] / row["gsplat_fwd_ms"]
             row["fwdbwd_ratio"] = row["ours_fwdbwd_ms"] / row["gsplat_fwdbwd_ms"]
+            for name, _ in variants:
+                row[f"{name}_max_image_diff"] = float((calls[name]()[0] - ref).abs().max())
+                row[f"{name}_fwd_ratio"] = row[f"{name}_fwd_ms"] / row["gsplat_fwd_ms"]
+                row[f"{name}_fwdbwd_ratio"] = row[f"{name}_fwdbwd_ms"] / row["gsplat_fwdbwd_ms"]
     if breakdown:
-        row["breakdown_ms"] = kernel_breakdown(scene, viewmat, K, width, height, options)
+        row["breakdown_ms"] = {name: kernel_breakdown(call, True, grads) for name, call in calls.items()}
     return row
 
 
 def benchmark_table(rows: list, title: str) -> str:
-    """``title``, then the markdown table of ``benchmark_scene`` rows (gsplat's columns when the rows
-    have them)."""
+    """``title``, then the markdown table of ``benchmark_scene`` rows: ours, each variant (its
+    times, and with gsplat its ratios and image difference) and gsplat's columns when the rows have
+    them; then, for rows with a breakdown, a per-kernel table of each renderer."""
     with_gsplat = bool(rows) and "gsplat_fwd_ms" in rows[0]
-    header = "| scene | N | ours fwd ms | ours fwd+bwd ms |" + (
+    names = [k[:-len("_fwd_ms")] for k in rows[0] if k.endswith("_fwd_ms") and k != "gsplat_fwd_ms"] if rows else []
+    header = "| scene | N | renderer | fwd ms | fwd+bwd ms |" + (
         " gsplat fwd ms | gsplat fwd+bwd ms | fwd ratio | fwd+bwd ratio | max |Δimage| |" if with_gsplat else "")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
-        line = f"| {r['scene']} | {r['n']:,} | {r['ours_fwd_ms']:.2f} | {r['ours_fwdbwd_ms']:.2f} |"
-        if with_gsplat:
-            line += (f" {r['gsplat_fwd_ms']:.2f} | {r['gsplat_fwdbwd_ms']:.2f} | {r['fwd_ratio']:.2f} |"
-                     f" {r['fwdbwd_ratio']:.2f} | {r['max_image_diff']:.1e} |")
-        lines.append(line)
-    return title + "\n\n" + "\n".join(lines)
+        for name in names:
+            line = f"| {r['scene']} | {r['n']:,} | {name} | {r[name + '_fwd_ms']:.2f} | {r[name + '_fwdbwd_ms']:.2f} |"
+            if with_gsplat:
+                prefix = "" if name == "ours" else name + "_"
+                line += (f" {r['gsplat_fwd_ms']:.2f} | {r['gsplat_fwdbwd_ms']:.2f} | {r[prefix + 'fwd_ratio']:.2f} |"
+                         f" {r[prefix + 'fwdbwd_ratio']:.2f} | {r[prefix + 'max_image_diff']:.1e} |")
+            lines.append(line)
+    text = title + "\n\n" + "\n".join(lines)
+    for r in rows:
+        for name, kernels in r.get("breakdown_ms", {}).items():
+            text += (f"\n\nPer-kernel GPU time, {r['scene']} {r['n']:,}, {name}, forward+backward "
+                     f"(total {sum(kernels.values()):.2f} ms)\n\n| kernel | ms |\n|---|---|\n")
+            text += "\n".join(f"| `{k}` | {v:.3f} |" for k, v in kernels.items())
+    return text
 
 
 # ---------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ and a busy entry makes the pool build another.
 """
 from __future__ import annotations
 
+import collections
 import weakref
 
 import torch
@@ -27,8 +28,11 @@ from .rasterizer import OUTPUT_NAMES, RasterOptions, RenderPlan, check_finite
 # Capacity = HEADROOM × the first render's intersections + SLACK: room for the scene to move.
 HEADROOM = 1.25
 SLACK = 4096
+# Shapes kept: a loop whose N changes every call gains nothing from capture, and must not keep
+# a graph and buffers per N; the least recently used shape without a render in flight goes first.
+MAX_SHAPES = 4
 
-_POOL: dict[tuple, list[_Captured]] = {}
+_POOL: collections.OrderedDict[tuple, list[_Captured]] = collections.OrderedDict()
 
 
 class _Captured:
@@ -45,6 +49,9 @@ class _Captured:
         self.graphs = {}
         self.busy = False
         self.pending = None  # (event, host count, host flags, names) of the last forward, unchecked
+        if self.cuda:  # where the replays' count and finiteness flags land, asynchronously
+            self.host_count = torch.empty(1, dtype=torch.int64, pin_memory=True)
+            self.host_flags = torch.empty(len(inputs) + 1, dtype=torch.bool, pin_memory=True)
         self.zeroed_outputs = [self.plan.w[k] for k in ("means2d", "conics", "depths", "opac_out")]
         # Gradients the backward accumulates into; the output cotangents are copied in instead.
         cotangents = {self.plan.w[k].grad.ptr for k in ("image", "alpha", "depth")}
@@ -109,11 +116,12 @@ class _Captured:
         count = self.plan.ends[-1:] if self.plan.n else torch.zeros(1, dtype=torch.int64)
         flags = flags if flags is not None else torch.ones(0, dtype=torch.bool)
         if self.cuda:
-            host_count = torch.empty(1, dtype=torch.int64, pin_memory=True).copy_(count, non_blocking=True)
-            host_flags = torch.empty(flags.shape, dtype=torch.bool, pin_memory=True).copy_(flags, non_blocking=True)
+            self.host_count.copy_(count, non_blocking=True)
+            host_flags = self.host_flags[:flags.numel()]
+            host_flags.copy_(flags, non_blocking=True)
             event = torch.cuda.Event()
             event.record()
-            self.pending = (event, host_count, host_flags, names)
+            self.pending = (event, self.host_count, host_flags, names)
         else:
             self.pending = (None, count.clone(), flags.clone(), names)
             self.check_pending()
@@ -150,6 +158,12 @@ def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Cap
     means, colors = inputs["means"], inputs["colors"]
     key = (str(means.device), means.shape[0], colors.shape[1], width, height, opts)
     entries = _POOL.setdefault(key, [])
+    _POOL.move_to_end(key)
+    while len(_POOL) > MAX_SHAPES:
+        idle = next((k for k, v in _POOL.items() if k != key and not any(e.busy for e in v)), None)
+        if idle is None:
+            break
+        del _POOL[idle]
     for entry in entries:
         if not entry.busy:
             return entry

@@ -105,9 +105,19 @@ def test_benchmark_scene_row_and_table():
 
 
 def test_kernel_breakdown_gets_the_timed_options(monkeypatch):
-    """The per-kernel breakdown (CUDA only, stubbed here) renders with the options of the timed run."""
+    """The per-kernel breakdown (CUDA only, stubbed here: it calls the renderer once) renders each
+    renderer with the options of its timed run."""
     seen = []
-    monkeypatch.setattr(benchmark, "kernel_breakdown", lambda *args: seen.append(args[-1]) or {"kernel": 1.0})
+    real = benchmark.rasterize
+    monkeypatch.setattr(benchmark, "rasterize", lambda *a, options=None, **k: seen.append(options) or real(
+        *a, options=options, **k))
+    monkeypatch.setattr(benchmark, "kernel_breakdown", lambda fn, *args: fn() and {"kernel": 1.0})
     options = benchmark.parse_options("tile_size=8,color_storage=float16")
-    row = benchmark.benchmark_scene("random", 50, 16, 16, "cpu", options, warmup=0, runs=1, breakdown=True)
-    assert seen == [options] and row["breakdown_ms"] == {"kernel": 1.0}
+    variant = benchmark.parse_variant("cap:capture=true", options)
+    row = benchmark.benchmark_scene("random", 50, 16, 16, "cpu", options, [variant], warmup=0, runs=1,
+                                    breakdown=True)
+    assert row["breakdown_ms"] == {"ours": {"kernel": 1.0}, "cap": {"kernel": 1.0}}
+    # Timed forward and forward+backward of each, the count render of ours, then each one's breakdown.
+    assert seen == [options] * 2 + [variant[1]] * 2 + [options] * 2 + [variant[1]]
+    table = benchmark.benchmark_table([row], "t")
+    assert "| random | 50 | cap |" in table and "Per-kernel GPU time, random 50, cap" in table

@@ -97,3 +97,11 @@ def test_non_finite_input_raises_naming_it():
 def test_no_gaussians():
     scene = random_scene(18, n=0)
     assert_same(render(scene, True), render(scene, False))
+
+
+def test_pool_keeps_at_most_max_shapes():
+    for n in range(20, 20 + raster_graph.MAX_SHAPES + 2):
+        render(random_scene(19, n=n), True, backward=False)
+    assert len(raster_graph._POOL) == raster_graph.MAX_SHAPES
+    # The most recent shapes stay.
+    assert [key[1] for key in raster_graph._POOL] == list(range(22, 22 + raster_graph.MAX_SHAPES))
