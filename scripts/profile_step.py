@@ -1,0 +1,73 @@
+"""One training step's time by section, SecureGS beside plain Scaffold-GS, on the built-in
+synthetic scene (securegs_warp.step_profile has the sections and how they are timed).
+
+    python scripts/profile_step.py                       # GPU: 1920×1080
+    python scripts/profile_step.py --device cpu --width 64 --height 48 --steps 2 --warmup 1
+
+Both trainers first run --warmup steps untimed (kernel compilation, allocator warm-up), then
+--steps steps with the section timers and --steps without. Writes profile_step.json and .md to
+--out (default $OUT) when given.
+"""
+import argparse
+import json
+import os
+
+import torch
+
+from securegs_warp import benchmark, step_profile
+from securegs_warp.cli.common import quiet_warp
+from securegs_warp.config import SecureConfig, TrainConfig
+from securegs_warp.data import make_synthetic_scene
+from securegs_warp.rasterizer import RasterOptions
+from securegs_warp.secure.trainer import SecureTrainer
+from securegs_warp.train import ScaffoldTrainer
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--width", type=int, default=1920)
+    parser.add_argument("--height", type=int, default=1080)
+    parser.add_argument("--train-views", type=int, default=4)
+    parser.add_argument("--iterations", type=int, default=4000, help="the run the schedules are scaled to")
+    parser.add_argument("--warmup", type=int, default=20)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--hide", default="mug", help="the hidden object of the scene")
+    parser.add_argument("--payload", default=SecureConfig().payload)
+    parser.add_argument("--options", default="", help="rasterizer options on top of the device's, e.g. capture=true")
+    parser.add_argument("--out", default=os.environ.get("OUT"), help="folder for profile_step.json and .md")
+    args = parser.parse_args()
+    try:
+        raster = benchmark.parse_options(args.options, RasterOptions.for_device(args.device))
+    except ValueError as e:
+        parser.error(str(e))
+    quiet_warp()
+    scene = make_synthetic_scene(hidden=args.hide, level="object", width=args.width, height=args.height,
+                                 n_train=args.train_views, n_test=1, device=args.device)
+    config = TrainConfig(iterations=args.iterations, raster=raster)
+    trainers = {"Scaffold-GS": ScaffoldTrainer(scene, config, device=args.device),
+                "SecureGS": SecureTrainer(scene, config, SecureConfig(payload=args.payload), device=args.device)}
+    results = {}
+    for label, trainer in trainers.items():
+        for _ in range(args.warmup):
+            trainer.step()
+        results[label] = step_profile.profile_steps(trainer, args.steps)
+        results[label]["anchors"] = trainer.model.anchors.num_anchors
+        print(label, json.dumps(results[label]), flush=True)
+    device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
+    table = step_profile.profile_table(
+        results, f"{device}, synthetic {args.width}×{args.height}, payload {args.payload}, mean of {args.steps} "
+                 f"steps after {args.warmup}, raster {benchmark.options_text(raster) or 'default options'}")
+    ratio = results["SecureGS"]["step_ms"] / results["Scaffold-GS"]["step_ms"]
+    table += f"\n\nSecureGS step / Scaffold-GS step (no timers): {ratio:.2f}"
+    print(table)
+    if args.out:
+        os.makedirs(args.out, exist_ok=True)
+        with open(os.path.join(args.out, "profile_step.json"), "w") as f:
+            json.dump({"device": device, "args": vars(args), "results": results}, f, indent=1)
+        with open(os.path.join(args.out, "profile_step.md"), "w") as f:
+            f.write(table + "\n")
+
+
+if __name__ == "__main__":
+    main()
