@@ -1,0 +1,37 @@
+"""securegs_warp.step_profile: every section of a SecureGS and a Scaffold-GS step is timed at a tiny
+size on the CPU (no timing is asserted, only that the sections are found and the patches undone)."""
+import torch
+
+from securegs_warp import render as render_module
+from securegs_warp import step_profile
+from securegs_warp.config import SecureConfig, TrainConfig
+from securegs_warp.data import make_synthetic_scene
+from securegs_warp.rasterizer import RasterOptions, _Rasterize
+from securegs_warp.secure.trainer import SecureTrainer
+from securegs_warp.train import ScaffoldTrainer
+
+
+def test_profile_steps_times_each_branch_and_restores_everything():
+    scene = make_synthetic_scene(hidden="mug", level="object", width=24, height=18, n_train=2, n_test=1,
+                                 n_points=200)
+    config = TrainConfig(iterations=10, raster=RasterOptions.for_device("cpu"))
+    originals = (torch.Tensor.__dict__["backward"], _Rasterize.__dict__["backward"], render_module.rasterize)
+    results = {}
+    for label, trainer in (("scaffold", ScaffoldTrainer(scene, config)),
+                           ("secure", SecureTrainer(scene, config, SecureConfig(payload="object+bits:48")))):
+        results[label] = step_profile.profile_steps(trainer, 1)
+        assert trainer.step_count == 2  # one step with the timers, one without
+        assert "step" not in vars(trainer) and "render" not in vars(trainer)
+        assert "step" not in vars(trainer.optimizer)
+    assert (torch.Tensor.__dict__["backward"], _Rasterize.__dict__["backward"], render_module.rasterize) == originals
+    for label, result in results.items():
+        sections = result["sections_ms"]
+        assert list(sections) == list(step_profile.SECTIONS)
+        assert all(v >= 0 for v in sections.values())
+        for name in ("public heads", "public rasterize", "backward (autograd, MLPs)", "rasterize backward", "adam"):
+            assert sections[name] > 0, (label, name)
+        assert result["step_ms"] > 0 and result["profiled_step_ms"] > 0
+    assert results["secure"]["sections_ms"]["hidden rasterize"] > 0
+    assert results["scaffold"]["sections_ms"]["hidden rasterize"] == 0
+    table = step_profile.profile_table(results, "title")
+    assert "| hidden rasterize |" in table and "scaffold ms | secure ms" in table
