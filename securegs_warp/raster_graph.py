@@ -84,7 +84,9 @@ class _Captured:
                 ops()
                 side = torch.cuda.Stream(self.static["means"].device)
                 side.wait_stream(torch.cuda.current_stream())
-                with wp.ScopedCapture(device=self.plan.device, stream=wp.stream_from_torch(side)) as capture:
+                w_side = wp.stream_from_torch(side)
+                # Warp launches go to its current stream: make it the capturing one.
+                with wp.ScopedStream(w_side), wp.ScopedCapture(device=self.plan.device, stream=w_side) as capture:
                     ops()
                 torch.cuda.current_stream().wait_stream(side)
                 self.graphs[name] = capture.graph

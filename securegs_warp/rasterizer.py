@@ -351,7 +351,8 @@ class RenderPlan:
                 "counts": _wp(self.counts, wp.int64),
                 "ends": _wp(self.ends, wp.int64),
                 "depth_bits": wp.from_torch(o["depths"].view(torch.int32), dtype=wp.int32),
-                "ranges": wp.zeros((self.n_tiles, 2), dtype=wp.int32),
+                # Allocated by torch, like every buffer here: in order on torch's stream.
+                "ranges": _wp(torch.zeros(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
             }
         self.w = {**w_in, **w_out}
         self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
@@ -396,9 +397,9 @@ class RenderPlan:
     def allocate_intersections(self, capacity: int) -> None:
         """Key and value buffers for ``capacity`` intersections (radix_sort_pairs needs twice that)."""
         self.capacity = capacity
-        with wp.ScopedDevice(self.device):
-            self.keys = wp.empty(max(2 * capacity, 2), dtype=wp.int64)
-            self.values = wp.empty(max(2 * capacity, 2), dtype=wp.int32)
+        tdev = self.out["image"].device
+        self.keys = _wp(torch.empty(max(2 * capacity, 2), device=tdev, dtype=torch.int64), wp.int64)
+        self.values = _wp(torch.empty(max(2 * capacity, 2), device=tdev, dtype=torch.int32), wp.int32)
 
     def sort_intersections(self, count: int, padded: bool) -> None:
         """Emit, sort and range the intersections: ``count`` of them exactly (eager), or, ``padded``,
