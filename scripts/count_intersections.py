@@ -37,11 +37,7 @@ def count_row(kind: str, n: int, width: int, height: int, device: str, tile_size
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--sizes", default="100000,1000000,3000000", help="comma-separated Gaussian counts")
-    parser.add_argument("--kinds", default="random,realistic", help=f"of {', '.join(benchmark.SCENE_KINDS)}")
-    parser.add_argument("--width", type=int, default=1920)
-    parser.add_argument("--height", type=int, default=1080)
+    benchmark.add_scene_arguments(parser)
     parser.add_argument("--tile-size", type=int, default=16)
     args = parser.parse_args()
     wp.config.quiet = True

@@ -41,7 +41,6 @@ import time
 from typing import Callable
 
 import torch
-import warp as wp
 
 from . import reference
 from .raster_cases import reference_kwargs, relative_error
@@ -126,6 +125,15 @@ def timed(fn, backward: bool, device: str, warmup: int, runs: int, grads) -> flo
             once()
             times.append(1000 * (time.perf_counter() - t0))
     return statistics.median(times)
+
+
+def add_scene_arguments(parser: argparse.ArgumentParser) -> None:
+    """--device, --sizes, --kinds, --width, --height: the benchmark scenes a script renders."""
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--sizes", default="100000,1000000,3000000", help="comma-separated Gaussian counts")
+    parser.add_argument("--kinds", default="random,realistic", help=f"of {', '.join(SCENE_KINDS)}")
+    parser.add_argument("--width", type=int, default=1920)
+    parser.add_argument("--height", type=int, default=1080)
 
 
 def ours(scene: dict, viewmat, K, width: int, height: int, options: RasterOptions | None = None):
