@@ -77,23 +77,27 @@ def test_two_renders_in_flight_keep_their_own_state():
             torch.testing.assert_close(inputs[name].grad, ref[name].grad, rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.skipif(TEST_DEVICE != "cpu", reason="on CUDA the check waits for the next call")
+def raises_by_the_next_call(first, bad, error, match):
+    """Render ``first`` captured, then ``bad`` of the same shape: the CPU raises at once, CUDA (which
+    checks a replay after it ran) at the following call of that shape."""
+    render(first, True, backward=False)
+    with pytest.raises(error, match=match):
+        render(bad, True, backward=False)
+        render(bad, True, backward=False)
+
+
 def test_capacity_overflow_raises():
     # Past the capacity's headroom and slack: ~70 small Gaussians, then 70 that cover the whole image.
     small = random_scene(16, n=70, width=320, height=240, scale=(0.01, 0.02), tile_size=8)
-    render(small, True, backward=False)
     large = random_scene(16, n=70, width=320, height=240, scale=(1.0, 2.0), tile_size=8)
-    with pytest.raises(RuntimeError, match="capacity"):
-        render(large, True, backward=False)
+    raises_by_the_next_call(small, large, RuntimeError, "capacity")
 
 
-@pytest.mark.skipif(TEST_DEVICE != "cpu", reason="on CUDA the check waits for the next call")
 def test_non_finite_input_raises_naming_it():
     scene = random_scene(17, n=70)
-    render(scene, True, backward=False)
-    scene.scales[3, 1] = float("nan")
-    with pytest.raises(ValueError, match="scales"):
-        render(scene, True, backward=False)
+    bad = random_scene(17, n=70)
+    bad.scales[3, 1] = float("nan")
+    raises_by_the_next_call(scene, bad, ValueError, "scales")
 
 
 def test_no_gaussians():
