@@ -224,12 +224,15 @@ def rasterize(
     }
     inputs = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, color_table=color_table,
                   background=background, viewmat=viewmat.detach().reshape(16), K=K.detach().reshape(9))
+    needs_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means, quats, scales, opacities, colors, background))
     if opts.capture:
         from .raster_graph import rasterize_captured  # noqa: PLC0415 (it builds on this module)
 
         outputs = rasterize_captured(inputs, int(width), int(height), opts, info, (tuple(checked), flags))
     else:
-        outputs = _Rasterize.apply(*inputs.values(), int(width), int(height), opts, info, (tuple(checked), flags))
+        outputs = _Rasterize.apply(*inputs.values(), int(width), int(height), opts, info, (tuple(checked), flags),
+                                   needs_grad)
     image, alpha, depth, radii, means2d, conics, depths, opac, n_isect = outputs
     info.update(radii=radii, means2d=means2d, conics=conics, depths=depths, opacities=opac, n_intersections=n_isect)
     if opts.render_depth == "accumulated":
@@ -300,10 +303,11 @@ class RenderPlan:
     background [C], viewmat [16], K [9]; all float32 contiguous on one device. Outputs
     (``self.out``): image [H, W, C], alpha [H, W, 1], depth [H, W, 1], radii [N, 2] int32,
     means2d [N, 2], conics [N, 3], depths [N], opacities [N]; ``self.grads``: the gradients of
-    means, quats, scales, opacities, colors and background, filled by ``backward``.
+    means, quats, scales, opacities, colors and background, filled by ``backward`` (only
+    ``with_grads``: a render nothing will differentiate allocates and zeroes no gradients).
     """
 
-    def __init__(self, inputs: dict, width: int, height: int, opts: RasterOptions):
+    def __init__(self, inputs: dict, width: int, height: int, opts: RasterOptions, with_grads: bool = True):
         tdev = inputs["means"].device
         self.device = wp.device_from_torch(tdev)
         self.width, self.height, self.opts = width, height, opts
@@ -322,43 +326,46 @@ class RenderPlan:
         self.last = torch.empty(height, width, device=tdev, dtype=torch.int32)
         self.counts = torch.empty(n, device=tdev, dtype=torch.int64)
         self.ends = torch.empty(n, device=tdev, dtype=torch.int64)
+        # Without gradients (no_grad, or no input that needs one) nothing is allocated for them.
+        g = with_grads
         with wp.ScopedDevice(self.device):
             w_in = {
-                "means": _wp(inputs["means"], wp.vec3, grad=True),
-                "quats": _wp(inputs["quats"], wp.vec4, grad=True),
-                "scales": _wp(inputs["scales"], wp.vec3, grad=True),
-                "opacities": _wp(inputs["opacities"], wp.float32, grad=True),
+                "means": _wp(inputs["means"], wp.vec3, grad=g),
+                "quats": _wp(inputs["quats"], wp.vec4, grad=g),
+                "scales": _wp(inputs["scales"], wp.vec3, grad=g),
+                "opacities": _wp(inputs["opacities"], wp.float32, grad=g),
                 # Colours only reach the hand-written blend adjoint, which writes their float32
                 # gradient into colors_grad whatever the table's storage type.
                 "color_table": _wp(inputs["color_table"], COLOR_STORAGES[opts.color_storage]),
-                "colors_grad": _wp(torch.zeros_like(inputs["colors"]), wp.float32),
-                "background": _wp(inputs["background"], wp.float32, grad=True),
+                "colors_grad": _wp(torch.zeros_like(inputs["colors"]), wp.float32) if g else None,
+                "background": _wp(inputs["background"], wp.float32, grad=g),
                 "viewmat": _wp(inputs["viewmat"], wp.float32),
                 "K": _wp(inputs["K"], wp.float32),
             }
             o = self.out
             w_out = {
-                "means2d": _wp(o["means2d"], wp.vec2, grad=True, retain_grad=True),
-                "conics": _wp(o["conics"], wp.vec3, grad=True),
-                "depths": _wp(o["depths"], wp.float32, grad=True),
-                "opac_out": _wp(o["opacities"], wp.float32, grad=True),  # after antialiasing
+                "means2d": _wp(o["means2d"], wp.vec2, grad=g, retain_grad=g),
+                "conics": _wp(o["conics"], wp.vec3, grad=g),
+                "depths": _wp(o["depths"], wp.float32, grad=g),
+                "opac_out": _wp(o["opacities"], wp.float32, grad=g),  # after antialiasing
                 "radii": _wp(o["radii"], wp.vec2i),
-                "image": _wp(o["image"], wp.float32, grad=True),
-                "alpha": _wp(o["alpha"], wp.float32, grad=True),
-                "depth": _wp(o["depth"], wp.float32, grad=True),
+                "image": _wp(o["image"], wp.float32, grad=g),
+                "alpha": _wp(o["alpha"], wp.float32, grad=g),
+                "depth": _wp(o["depth"], wp.float32, grad=g),
                 "transmittance": _wp(self.transmittance, wp.float32),
                 "last": _wp(self.last, wp.int32),
                 "counts": _wp(self.counts, wp.int64),
                 "ends": _wp(self.ends, wp.int64),
                 "depth_bits": wp.from_torch(o["depths"].view(torch.int32), dtype=wp.int32),
                 # Allocated by torch, like every buffer here: in order on torch's stream.
-                "ranges": _wp(torch.zeros(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
+                "ranges": _wp(torch.empty(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
             }
         self.w = {**w_in, **w_out}
-        self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
-            wp.to_torch(self.w["colors_grad"]), wp.to_torch(self.w["background"].grad)]
-        self.out_grads = [wp.to_torch(self.w[k].grad) for k in ("image", "alpha", "depth")]
-        self.means2d_grad = wp.to_torch(self.w["means2d"].grad)
+        if g:
+            self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
+                wp.to_torch(self.w["colors_grad"]), wp.to_torch(self.w["background"].grad)]
+            self.out_grads = [wp.to_torch(self.w[k].grad) for k in ("image", "alpha", "depth")]
+            self.means2d_grad = wp.to_torch(self.w["means2d"].grad)
         w = self.w
         self._projection = dict(
             kernel=projection_kernel(opts.antialiased, opts.radius_rule, opts.fast_math), dim=n,
@@ -468,11 +475,11 @@ OUTPUT_NAMES = ("image", "alpha", "depth", "radii", "means2d", "conics", "depths
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, color_table, background, viewmat, K, width, height,
-                opts, info, finite):
+                opts, info, finite, needs_grad):
         wp.init()  # idempotent; Warp must be up before its devices can be named
         inputs = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
                       color_table=color_table, background=background, viewmat=viewmat, K=K)
-        plan = RenderPlan(inputs, width, height, opts)
+        plan = RenderPlan(inputs, width, height, opts, with_grads=needs_grad)
         with plan.scoped():
             plan.project_and_count()
             # The render's one host synchronisation: the intersection count and the finiteness flags.
@@ -503,4 +510,4 @@ class _Rasterize(torch.autograd.Function):
         grads = plan.grads
         ctx.plan = None  # release the Warp arrays
         # grads for means, quats, scales, opacities, colors (not color_table), background; none beyond.
-        return (*grads[:5], None, grads[5], None, None, None, None, None, None, None)
+        return (*grads[:5], None, grads[5], None, None, None, None, None, None, None, None)

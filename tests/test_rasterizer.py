@@ -300,3 +300,18 @@ def test_for_device_picks_the_tile_size():
     assert RasterOptions.for_device("cpu", tile_size=16).tile_size == 16
     with pytest.raises(ValueError, match="tile_sise"):
         RasterOptions.for_device("cpu", tile_sise=8)
+
+
+def test_render_without_gradients_is_the_same_render():
+    """A render nothing differentiates allocates no gradients: same image, alpha and info."""
+    s = random_scene(21, n=60)
+    args = (s.means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height)
+    with torch.no_grad():
+        plain = rasterize(*args, background=s.background)
+    means = s.means.clone().requires_grad_(True)
+    graded = rasterize(means, *args[1:], background=s.background)
+    assert not plain[0].requires_grad and graded[0].requires_grad
+    for a, b in zip(plain[:2], graded[:2]):
+        assert torch.equal(a, b)
+    for key in ("radii", "means2d", "conics", "depths", "opacities"):
+        assert torch.equal(plain[2][key], graded[2][key])
