@@ -53,11 +53,12 @@ class _Captured:
             self.host_count = torch.empty(1, dtype=torch.int64, pin_memory=True)
             self.host_flags = torch.empty(len(inputs) + 1, dtype=torch.bool, pin_memory=True)
         self.zeroed_outputs = [self.plan.w[k] for k in ("means2d", "conics", "depths", "opac_out")]
-        # Gradients the backward accumulates into; the output cotangents are copied in instead.
-        cotangents = {self.plan.w[k].grad.ptr for k in ("image", "alpha", "depth")}
-        self.zeroed_grads = [a.grad for a in self.plan.w.values()
-                             if isinstance(a, wp.array) and a.grad is not None and a.grad.ptr not in cotangents]
+        # Gradients the backward accumulates into, zeroed by each replay.
+        self.zeroed_grads = [a.grad for a in self.plan.w.values() if isinstance(a, wp.array) and a.grad is not None]
         self.zeroed_grads.append(self.plan.w["colors_grad"])
+        # Where each backward copies the output gradients (dL/d image, alpha, depth) for its graph.
+        self.cotangents = [torch.zeros_like(self.plan.out[k]) for k in ("image", "alpha", "depth")]
+        self.w_cotangents = [wp.from_torch(t, dtype=wp.float32) for t in self.cotangents]
 
     def _forward_ops(self):
         for a in self.zeroed_outputs:
@@ -69,7 +70,7 @@ class _Captured:
     def _backward_ops(self):
         for a in self.zeroed_grads:
             a.zero_()
-        self.plan.backward()
+        self.plan.backward(self.w_cotangents)
 
     def _run(self, name: str, ops) -> None:
         """``ops()`` directly (the CPU, and CUDA's first call, which also loads the kernels), then
@@ -131,7 +132,7 @@ class _Captured:
         return out + [self.plan.ends[-1].clone() if self.plan.n else 0]
 
     def backward(self, grads) -> list:
-        for buffer, g in zip(self.plan.out_grads, grads):
+        for buffer, g in zip(self.cotangents, grads):
             if g is None:
                 buffer.zero_()
             else:

@@ -349,9 +349,9 @@ class RenderPlan:
                 "depths": _wp(o["depths"], wp.float32, grad=g),
                 "opac_out": _wp(o["opacities"], wp.float32, grad=g),  # after antialiasing
                 "radii": _wp(o["radii"], wp.vec2i),
-                "image": _wp(o["image"], wp.float32, grad=g),
-                "alpha": _wp(o["alpha"], wp.float32, grad=g),
-                "depth": _wp(o["depth"], wp.float32, grad=g),
+                "image": _wp(o["image"], wp.float32),
+                "alpha": _wp(o["alpha"], wp.float32),
+                "depth": _wp(o["depth"], wp.float32),
                 "transmittance": _wp(self.transmittance, wp.float32),
                 "last": _wp(self.last, wp.int32),
                 "counts": _wp(self.counts, wp.int64),
@@ -364,7 +364,6 @@ class RenderPlan:
         if g:
             self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
                 wp.to_torch(self.w["colors_grad"]), wp.to_torch(self.w["background"].grad)]
-            self.out_grads = [wp.to_torch(self.w[k].grad) for k in ("image", "alpha", "depth")]
             self.means2d_grad = wp.to_torch(self.w["means2d"].grad)
         w = self.w
         self._projection = dict(
@@ -437,13 +436,13 @@ class RenderPlan:
                   inputs=self._blend_args() + [self.opts.transmittance_min],
                   outputs=[w["image"], w["alpha"], w["depth"], w["transmittance"], w["last"]])
 
-    def backward(self) -> None:
+    def backward(self, cotangents) -> None:
         """Blend adjoint, then the projection adjoint: accumulates into ``self.grads`` and
-        ``means2d``'s gradient from the output gradients (``self.out_grads``)."""
+        ``means2d``'s gradient from ``cotangents``, Warp float32 views of dL/d image [H, W, C],
+        dL/d alpha [H, W, 1] and dL/d depth [H, W, 1]."""
         w, ts = self.w, self.opts.tile_size
         wp.launch(self._blend[1], dim=(self.n_tiles, ts * ts), block_dim=self._bwd_block,
-                  inputs=self._blend_args() + [w["transmittance"], w["last"], w["image"].grad, w["alpha"].grad,
-                                               w["depth"].grad],
+                  inputs=self._blend_args() + [w["transmittance"], w["last"], *cotangents],
                   outputs=[w["means2d"].grad, w["conics"].grad, w["opac_out"].grad, w["colors_grad"],
                            w["depths"].grad, w["background"].grad])
         # Warp's generated adjoint of the projection, launched as wp.Tape would launch it.
@@ -501,11 +500,11 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_image, g_alpha, g_depth, *_):
         plan = ctx.plan
+        # The incoming gradients are read in place (an unused output's may be None: zeros).
+        cotangents = [_wp(torch.zeros_like(plan.out[k]) if g is None else g.float().contiguous(), wp.float32)
+                      for k, g in zip(("image", "alpha", "depth"), (g_image, g_alpha, g_depth))]
         with plan.scoped():
-            for buffer, g in zip(plan.out_grads, (g_image, g_alpha, g_depth)):
-                if g is not None:
-                    buffer.copy_(g)
-            plan.backward()
+            plan.backward(cotangents)
         ctx.info["means2d_grad"] += plan.means2d_grad
         grads = plan.grads
         ctx.plan = None  # release the Warp arrays
