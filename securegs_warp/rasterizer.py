@@ -187,13 +187,14 @@ def rasterize(
         **overrides: fields of ``RasterOptions`` (near_plane, far_plane, eps2d, radius_clip,
             alpha_min, alpha_max, transmittance_min, tile_size, antialiased, radius_rule,
             render_depth=None | "accumulated" | "expected", fast_math, color_storage="float32" |
-            "float16", tile_overlap="ellipse" | "rectangle", forward_block, backward_block), replacing
-            those of ``options``.
+            "float16", tile_overlap="ellipse" | "rectangle", capture, forward_block, backward_block),
+            replacing those of ``options``.
 
     Returns:
         image [H, W, C], alpha [H, W, 1], info: dict with
         ``radii`` [N, 2] int32 (0: culled), ``means2d`` [N, 2], ``conics`` [N, 3], ``depths`` [N],
-        ``opacities`` [N] (after antialiasing compensation), ``n_intersections``, ``tile_size``,
+        ``opacities`` [N] (after antialiasing compensation), ``n_intersections`` (an int; with
+        ``capture`` a 0-d int64 device tensor, so that reading it is the caller's choice), ``tile_size``,
         ``width``, ``height``, ``depth`` [H, W, 1] when asked, and ``means2d_grad`` [N, 2], which the
         backward pass fills with dL/d means2d (pixels) for densification statistics.
 
