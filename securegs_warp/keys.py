@@ -29,9 +29,6 @@ import warnings
 from pathlib import Path
 
 import torch
-from cryptography.exceptions import InvalidTag
-from cryptography.hazmat.primitives.ciphers.aead import AESGCM
-from cryptography.hazmat.primitives.kdf.scrypt import Scrypt
 from safetensors.torch import load as _st_load
 from safetensors.torch import save as _st_save
 
@@ -92,6 +89,8 @@ def _plain_bytes(tensors: dict[str, torch.Tensor], metadata: dict, fingerprint: 
 def _derive(passphrase: str, salt: bytes, n: int, r: int, p: int) -> bytes:
     # NFC so that the same typed passphrase gives the same bytes on every OS / keyboard.
     secret = unicodedata.normalize("NFC", passphrase).encode("utf-8")
+    from cryptography.hazmat.primitives.kdf.scrypt import Scrypt  # only sealed keys need cryptography
+
     return Scrypt(salt=salt, length=32, n=n, r=r, p=p).derive(secret)
 
 
@@ -106,6 +105,8 @@ def seal(data: bytes, passphrase: str) -> bytes:
               "nonce": base64.b64encode(nonce).decode()}
     prefix = SEALED_MAGIC + json.dumps(header, sort_keys=True).encode() + b"\n"
     key = _derive(passphrase, salt, SCRYPT_N, SCRYPT_R, SCRYPT_P)
+    from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+
     return prefix + AESGCM(key).encrypt(nonce, data, prefix)
 
 
@@ -162,6 +163,9 @@ def unseal(path: Path, blob: bytes, passphrase: str | None, what: str = "key") -
         raise KeyFileError(f"{path}: sealed {what} header is damaged or uses an unsupported cipher")
     if passphrase is None:
         raise KeyFileError(f"{path}: this {what} is sealed with a passphrase; please give the passphrase")
+    from cryptography.exceptions import InvalidTag
+    from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+
     try:
         return AESGCM(_derive(passphrase, salt, n, r, p)).decrypt(nonce, ciphertext, prefix)
     except InvalidTag:
