@@ -2,8 +2,9 @@
 
     RunConfig
     ├── scene: SceneSpec            what to train on (a built-in scene or a data folder)
-    ├── train: TrainConfig          Scaffold-GS training
+    ├── train: TrainConfig          training: which model (Scaffold-GS or plain 3DGS), its options
     │   ├── heads: HeadsConfig      which head inputs exist (feature bank, appearance, distances)
+    │   ├── gaussians: GaussiansConfig   plain 3DGS: SH degree and learning rates
     │   └── raster: RasterOptions   the rasterizer's options (tile size, antialiasing, ...)
     └── secure: SecureConfig | None SecureGS: payload, λ, gradient shares, HDGER
         └── strategy: RegionAwareStrategy   density optimisation (mode, r_down, ...)
@@ -49,14 +50,47 @@ class HeadsConfig:
             raise ValueError(f"appearance_dim must be >= 0, got {self.appearance_dim}")
 
 
+MODELS = ("scaffold", "3dgs")
+"""What ``securegs train`` can train: Scaffold-GS (anchors + MLPs) or plain 3DGS (explicit Gaussians)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GaussiansConfig:
+    """Plain 3DGS (``TrainConfig.model == "3dgs"``); defaults are 3DGS's for its 30k-step runs.
+
+    sh_degree: the largest spherical-harmonic degree of the colours (0..3). sh_interval: steps per
+    degree as 3DGS raises it from 0 (1000 of 30k; scaled to the run's length like the
+    densification schedule). Learning rates: means_lr an (initial, final) exponential schedule
+    times the scene's camera extent; features_rest at sh_lr / 20, as 3DGS.
+    """
+
+    sh_degree: int = 3
+    sh_interval: int = 1000
+    means_lr: tuple = (0.00016, 0.0000016)
+    sh_lr: float = 0.0025
+    opacity_lr: float = 0.05
+    scale_lr: float = 0.005
+    quat_lr: float = 0.001
+
+    def __post_init__(self):
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if self.sh_interval < 1:
+            raise ValueError(f"sh_interval must be >= 1, got {self.sh_interval}")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Scaffold-GS training; defaults are Scaffold-GS's (learning rates for its 30k-step runs).
+    """Training; defaults are Scaffold-GS's (learning rates for its 30k-step runs), and 3DGS's in
+    ``gaussians`` when ``model`` is "3dgs" (the Scaffold-GS fields other than the shared
+    iterations, seed, raster, ssim_weight and densify are then unused).
 
     Learning-rate pairs are (initial, final) of an exponential schedule over the run.
     """
 
     iterations: int = 30_000
+    model: str = "scaffold"
+    gaussians: GaussiansConfig = dataclasses.field(default_factory=GaussiansConfig)
     seed: int = 0
     voxel_size: float = 0.0  # <= 0: from the sparse points' nearest-neighbour distances
     heads: HeadsConfig = dataclasses.field(default_factory=HeadsConfig)
@@ -77,6 +111,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
 
 
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
@@ -220,6 +256,11 @@ class RunConfig:
     scene: SceneSpec = dataclasses.field(default_factory=SceneSpec)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
     secure: SecureConfig | None = None
+
+    def __post_init__(self):
+        if self.secure is not None and self.train.model != "scaffold":
+            raise ValueError(f"SecureGS hides in a Scaffold-GS model; train.model {self.train.model!r} cannot "
+                             "carry its payload")
 
 
 # ---------------------------------------------------------------------------------------------
