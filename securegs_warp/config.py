@@ -9,6 +9,9 @@
     └── secure: SecureConfig | None SecureGS: payload, λ, gradient shares, HDGER
         └── strategy: RegionAwareStrategy   density optimisation (mode, r_down, ...)
 
+    StegaNeRFConfig                 the 3DGS + StegaNeRF baseline's fine-tuning (baselines.steganerf;
+                                    run by scripts/compare_methods.py, not a run folder's section)
+
 The CLI flags, ``config.json``, checkpoints, key metadata and the scripts' variants all go through
 :func:`to_dict` / :func:`from_dict` and :func:`apply_overrides`, by field name. A field that is off
 builds nothing: the heads get an input only when its flag is set, and each raster flag selects its
@@ -113,6 +116,56 @@ class TrainConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class StegaNeRFConfig:
+    """StegaNeRF (Li et al., CVPR 2023) on a trained plain 3DGS scene: fine-tune the scene so that a
+    U-Net decoder recovers a hidden image from its render at any view. Defaults follow the authors'
+    code (chenxinli001/StegaNeRF, opt_stega.py) where it states them; the rest is marked.
+
+    iterations: fine-tuning steps (one training view each). rgb_target: what the fine-tuned render
+    is held to, "init" (the scene's render before fine-tuning, the authors' ``mse_cp init``) or
+    "gt" (the training images). tune: "color" (only the SH colours move, the authors' fixed-geometry
+    setting) or "all" (every Gaussian attribute; the 3DGS analogue of also training density).
+    rgb_weight, hidden_weight, clean_weight, classifier_weight: the loss weights of the render's MSE,
+    the decoder's MSE to the hidden image on fine-tuned renders, its MSE to black on the original
+    renders, and the classifier's BCE (the authors' w_rgb 1, w_wm 0.5 and w_wm_ctr 0.5 or 1, w_dis
+    0.01). gradient_masking: scale each SH coefficient's gradient by (e_min / e)^masking_power, e
+    the mean magnitude of that coefficient over the scene, so the coefficients that carry most of
+    the appearance move least (the authors' adaptive gradient masking; their power is a flag,
+    n_power_softw, default unknown here: 1). color_lr: Adam's learning rate for the SH
+    coefficients (3DGS's; the paper's grid optimiser has no counterpart). decoder_lr,
+    decoder_width: the U-Net's and classifier's Adam learning rate and first-level width (not in
+    the paper's text; small enough for the CPU).
+    """
+
+    iterations: int = 600
+    rgb_target: str = "init"
+    tune: str = "color"
+    rgb_weight: float = 1.0
+    hidden_weight: float = 1.0
+    clean_weight: float = 1.0
+    classifier_weight: float = 0.01
+    gradient_masking: bool = True
+    masking_power: float = 1.0
+    color_lr: float = 0.0025
+    decoder_lr: float = 0.001
+    decoder_width: int = 16
+
+    def __post_init__(self):
+        if self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.rgb_target not in ("init", "gt"):
+            raise ValueError(f"rgb_target must be 'init' or 'gt', got {self.rgb_target!r}")
+        if self.tune not in ("color", "all"):
+            raise ValueError(f"tune must be 'color' or 'all', got {self.tune!r}")
+        if self.decoder_width < 1:
+            raise ValueError(f"decoder_width must be >= 1, got {self.decoder_width}")
+        for name in ("rgb_weight", "hidden_weight", "clean_weight", "classifier_weight", "masking_power",
+                     "color_lr", "decoder_lr"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
