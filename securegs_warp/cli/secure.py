@@ -277,7 +277,7 @@ def finish_container(trainer, run: RunFolder, config: RunConfig, secrets: list[S
     for i in range(len(trainer.payloads)):
         suffix = secret_suffix(i)
         if metrics.get("hidden_learnt" + suffix) is False:
-            print(f"warning: the hidden payload {metrics['payload' + suffix]} was not learnt: its render "
+            print(f"warning: the hidden payload was not learnt ({metrics['payload' + suffix]}): its render "
                   f"({metrics['psnr_hidden' + suffix]:.2f} dB) is not 1 dB better than a flat image of each target's "
                   f"mean colour ({metrics['psnr_hidden_flat' + suffix]:.2f} dB). Train longer (--iterations) or let "
                   "more of the hidden loss reach the anchor features (--hidden-feature-grad).", file=sys.stderr)
