@@ -163,7 +163,8 @@ def main() -> None:
         models.append((seed, PLAIN, plain.model.anchors, []))
         for count in range(1, len(secrets) + 1):
             payload = SECRET_SEPARATOR.join(secrets[:count])
-            secure = SecureConfig(payload=payload, strategy=dataclasses.replace(SecureConfig().strategy, mode=args.mode))
+            strategy = dataclasses.replace(SecureConfig().strategy, mode=args.mode)
+            secure = SecureConfig(payload=payload, strategy=strategy)
             trainer = SecureTrainer(scene, config, secure, device=args.device)
             label = f"{count}: {payload}"
             train(trainer, f"seed {seed}, {label}")

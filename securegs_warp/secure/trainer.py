@@ -164,7 +164,9 @@ class SecureTrainer(ScaffoldTrainer):
         """Secret ``secret``'s hidden metrics: PSNR/SSIM on held-out views (object, scene) or at the
         image's view, and bit accuracy."""
         p, out = self.payloads[secret], {}
-        render = lambda cam, index=None: self.render_hidden(cam, index, secret=secret)["image"].clamp(0, 1)  # noqa: E731
+        def render(cam, index=None):
+            return self.render_hidden(cam, index, secret=secret)["image"].clamp(0, 1)
+
         if p.views is not None and p.test_views is not None:
             pairs = [(render(c), t) for c, t in zip(self.scene.test, p.test_views)]
         elif p.views is not None:
