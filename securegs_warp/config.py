@@ -178,7 +178,8 @@ class SecureConfig:
     """SecureGS on top of a ``TrainConfig``.
 
     payload: what is hidden (``PayloadSpec`` syntax: ``object``, ``scene``, ``image[:FILE[@VIEW]]``,
-        ``bits[:L or :0101...]``, joined with ``+``).
+        ``bits[:L or :0101...]``, joined with ``+``); several secrets, each with its own private
+        heads and key, are separated by ``,`` (``object+bits:48,bits:64``; payload.parse_secrets).
     hidden_weight: λ of ℓ_ori + λ·ℓ_hid; None takes the payload's default (payload.HIDDEN_WEIGHT).
     hidden_feature_grad, hidden_scaling_grad: the share of ℓ_hid's gradient that reaches the public
         anchor features f_v and scalings l_v (1: all of it, as in the paper; 0: none). Both are
@@ -200,7 +201,8 @@ class SecureConfig:
     strategy: the region-aware density strategy and its mode (rdo, scaffold, global, shared, cover).
     hidden_frame: where the private F_o† places hidden Gaussians (``PrivateHeads``): "anchor" (the
         paper: near their anchor) or "box" (anywhere in the hidden object's box, decoded from the
-        cover's anchors nearest it); None: "box" with the "cover" mode, "anchor" otherwise.
+        cover's anchors nearest it); None: "box" for an object with the "cover" mode, "anchor"
+        otherwise.
     hidden_offsets, hidden_width, hidden_anchors: k_hid (hidden Gaussians per anchor), the private
         MLPs' hidden width and, in the box frame, how many anchors nearest the box decode hidden
         Gaussians. None: the public k and d and every visible anchor in the anchor frame,
@@ -221,10 +223,11 @@ class SecureConfig:
     hidden_width: int | None = None
     hidden_anchors: int | None = None
 
-    def private_options(self) -> dict:
+    def private_options(self, kind: str | None) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
-        serving), with the frame's defaults filled in."""
-        frame = self.hidden_frame or ("box" if self.strategy.mode == "cover" else "anchor")
+        serving) for a secret hiding ``kind`` (a ``PayloadSpec.kind``), with the frame's defaults
+        filled in."""
+        frame = self.hidden_frame or ("box" if self.strategy.mode == "cover" and kind == "object" else "anchor")
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {"n_hidden": None, "width": None, "serving": 0}
         given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors}
         return {"frame": frame, **{name: defaults[name] if value is None else value for name, value in given.items()}}

@@ -99,7 +99,7 @@ def attacked_copy(model: SecureModel, attacks: list[Attack], ctx: AttackContext)
     not attacked: the attacker has no key); returns (the attacked model, the attacks' reports)."""
     public = ScaffoldModel(copy.deepcopy(model.anchors), copy.deepcopy(model.heads))
     reports = apply_attacks(public, attacks, ctx)
-    return SecureModel(public.anchors, public.heads, model.private), reports
+    return SecureModel(public.anchors, public.heads, list(model.secrets)), reports
 
 
 def sweep(models: dict[str, SecureModel], views: dict[str, KeyViews], scene: SceneData | None,

@@ -11,7 +11,7 @@ from securegs_warp.io import anchor_ply_properties
 from securegs_warp.io.gs_ply import read_vertex_ply
 from securegs_warp.keys import KeyFileError
 from securegs_warp.secure import PayloadSpec, SecureConfig, SecureTrainer
-from securegs_warp.secure.container import open_container, save_container
+from securegs_warp.secure.container import KeyFile, open_container, save_container
 from securegs_warp.secure.security import exposure
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.strategies import RegionAwareStrategy
@@ -150,7 +150,7 @@ def test_bits_are_read_from_the_anchor_features(hidden_scene):
 
 def test_release_is_plain_scaffold_gs_and_holds_no_private_tensor(trained, tmp_path):
     trainer, _ = trained
-    public, key = save_container(tmp_path, trainer.model, {"payload": "object"})
+    public, _ = save_container(tmp_path, trainer.model, [KeyFile({"payload": "object"})])
     assert sorted(p.name for p in public.iterdir()) == ["color_mlp.pt", "cov_mlp.pt", "opacity_mlp.pt",
                                                         "point_cloud.ply"]
     names = [p.name for p in read_vertex_ply(public / "point_cloud.ply").properties]
@@ -166,7 +166,7 @@ def test_release_is_plain_scaffold_gs_and_holds_no_private_tensor(trained, tmp_p
 
 def test_key_opens_only_its_own_container(trained, tmp_path, hidden_scene):
     trainer, _ = trained
-    public, key = save_container(tmp_path / "a", trainer.model, {}, passphrase="s3cret")
+    public, (key,) = save_container(tmp_path / "a", trainer.model, [KeyFile({}, passphrase="s3cret")])
     opened, _ = open_container(public, key, "s3cret")
     assert opened.private is not None
     for a, b in zip(opened.private.state_dict().values(), trainer.model.private.state_dict().values()):
@@ -181,7 +181,7 @@ def test_key_opens_only_its_own_container(trained, tmp_path, hidden_scene):
     with pytest.raises(KeyFileError):
         open_container(public, tmp_path / "tampered.sealed", "s3cret")
     other = SecureTrainer(hidden_scene, TrainConfig(iterations=2, raster=CPU_RASTER, seed=1), SecureConfig(payload="object"))
-    other_public, _ = save_container(tmp_path / "b", other.model, {})
+    other_public, _ = save_container(tmp_path / "b", other.model, [KeyFile({})])
     with pytest.raises(KeyFileError, match="another container"):
         open_container(other_public, key, "s3cret")
     assert open_container(public)[0].private is None  # no key: the cover scene only
@@ -248,7 +248,7 @@ def test_without_hdger_offsets_are_explicit_and_follow_growth(hidden_scene, tmp_
     moments = trainer.optimizer.state[model.hidden_offsets]
     assert moments["exp_avg"].shape == model.hidden_offsets.shape
     with pytest.raises(ValueError, match="HDGER"):
-        save_container(tmp_path, trainer.model, {})
+        save_container(tmp_path, trainer.model, [KeyFile({})])
 
 
 def test_hidden_branch_switches(hidden_scene):

@@ -260,6 +260,9 @@ def _interrupted(trainer, run: RunFolder, passphrase: str | None) -> int:
 def print_metrics(metrics: dict) -> None:
     keys = ("psnr", "ssim", "lpips", "fps", "size_mb", "psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden",
             "bit_accuracy", "fps_public", "fps_hidden", "size_mb_public", "anchors", "gaussians", "train_seconds")
+    # A release with several secrets reports each one's hidden metrics with its suffix (_2, _3 ...).
+    keys = [name for k in keys for name in [k] + sorted(m for m in metrics if m.rpartition("_")[0] == k
+                                                           and m.rpartition("_")[2].isdigit())]
     print("  ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics.get(k), float) else f"{k}={metrics.get(k)}"
                     for k in keys if k in metrics))
     if metrics.get("lpips_note"):

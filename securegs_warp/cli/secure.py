@@ -1,11 +1,20 @@
-"""``securegs hide``, ``reveal`` and ``demo``: make a container, open it with or without the key."""
+"""``securegs hide``, ``reveal`` and ``demo``: make a container, open it with or without a key.
+
+``hide`` hides one secret, or several, each behind its own key: every ``--and`` starts another
+secret with its own ``--payload``, ``--key-out`` and ``--passphrase-env``; the run's options (scene,
+training, density strategy) come before the first ``--and`` and hold for all. The secrets are given
+on the command line rather than in a file listing them because each needs only these three
+options, which the command already has, and a run's config.json records their payloads anyway.
+"""
 from __future__ import annotations
 
+import argparse
 import contextlib
 import dataclasses
 import os
 import shutil
 import sys
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -15,8 +24,9 @@ from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
-from ..secure.container import KeyViews, open_container, save_container
-from ..secure.payload import PayloadSpec
+from ..secure.container import PLAIN_KEY, PUBLIC_DIR, SEALED_KEY, KeyFile, KeyViews, open_container, save_container
+from ..secure.payload import SECRET_SEPARATOR, describe_secrets, parse_secrets
+from ..secure.trainer import secret_suffix
 from ..secure.security import exposure
 from . import common
 from .common import CommandError
@@ -71,27 +81,111 @@ SECURE_FLAGS = (
 def passphrase_from(args) -> str | None:
     """The passphrase from the environment variable named by --passphrase-env (never from argv,
     where other users of the machine could read it)."""
-    if not args.passphrase_env:
+    return passphrase_from_env(args.passphrase_env)
+
+
+def passphrase_from_env(name: str | None) -> str | None:
+    """The value of environment variable ``name`` (None: no passphrase)."""
+    if not name:
         return None
-    value = os.environ.get(args.passphrase_env)
+    value = os.environ.get(name)
     if not value:
-        raise CommandError(f"--passphrase-env {args.passphrase_env}: that environment variable is empty or unset")
+        raise CommandError(f"--passphrase-env {name}: that environment variable is empty or unset")
     return value
 
 
-def hide_config(args, device) -> RunConfig:
-    """The run's config from the command line; the payload is checked against the scene here."""
+@dataclasses.dataclass
+class SecretOptions:
+    """One secret's own options of ``hide``: its payload, where its key goes (None: OUT/key.safetensors
+    or key.sealed; the first secret only) and its passphrase (None: a plain key)."""
+
+    payload: str
+    key_out: Path | None
+    passphrase: str | None
+
+
+def _secret_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="securegs hide ... --and", add_help=False, exit_on_error=False)
+    p.add_argument("--payload")
+    p.add_argument("--key-out")
+    p.add_argument("--passphrase-env")
+    return p
+
+
+def secret_options(args) -> list[SecretOptions]:
+    """Each secret's options: the first from before any ``--and``, one more per ``--and`` group.
+    Refused: a group without --payload or --key-out, a run option inside a group, a --payload that
+    names several secrets, two keys at one path, a key inside the release folder, an existing key
+    file (unless --force or --resume), and sealed later keys beside plain checkpoints."""
+    first = getattr(args, "secure.payload")
+    secrets = [SecretOptions(first if first is not None else SecureConfig().payload,
+                             None if args.key_out is None else Path(args.key_out), passphrase_from(args))]
+    groups = []
+    if args.more is not None:  # the words after the first --and, split at the others
+        groups.append([])
+        for word in args.more:
+            if word == "--and":
+                groups.append([])
+            else:
+                groups[-1].append(word)
+    for group in groups:
+        try:
+            given, rest = _secret_parser().parse_known_args(group)
+        except argparse.ArgumentError as e:
+            raise CommandError(f"after --and: {e}") from None
+        if rest:
+            raise CommandError(f"after --and only a secret's own --payload, --key-out and --passphrase-env are read, "
+                               f"not {rest[0]!r}: give the run's options before the first --and")
+        if given.payload is None:
+            raise CommandError("--and starts another secret: give its --payload (and --key-out) after it")
+        if given.key_out is None:
+            raise CommandError(f"the secret --payload {given.payload} (after --and) needs its own --key-out: where "
+                               "its key is written")
+        secrets.append(SecretOptions(given.payload, Path(given.key_out), passphrase_from_env(given.passphrase_env)))
+    for secret in secrets:
+        if SECRET_SEPARATOR in secret.payload:
+            raise CommandError(f"--payload {secret.payload!r} names several secrets: give each further one after "
+                               "--and with its own --key-out")
+    _check_key_paths(args, secrets)
+    if secrets[0].passphrase is None and any(s.passphrase for s in secrets[1:]):
+        raise CommandError("a later secret's key is sealed but the first's is not: the run's checkpoints, which hold "
+                           "every secret's heads, are sealed with the first secret's --passphrase-env; give it one")
+    return secrets
+
+
+def _check_key_paths(args, secrets: list[SecretOptions]) -> None:
+    out = Path(args.out).resolve()
+    first_default = out / (SEALED_KEY if secrets[0].passphrase else PLAIN_KEY)
+    paths = [first_default if s.key_out is None else s.key_out.resolve() for s in secrets]
+    for i, path in enumerate(paths):
+        if path in paths[:i]:
+            raise CommandError(f"--key-out {path}: two secrets' keys would be written to the same file")
+        if path == out / PUBLIC_DIR or out / PUBLIC_DIR in path.parents:
+            raise CommandError(f"--key-out {path} lies inside the release folder, which holds only what Scaffold-GS "
+                               "reads; write keys elsewhere")
+        if path.is_dir():
+            raise CommandError(f"--key-out {path} is a folder; give a file name")
+        if secrets[i].key_out is not None and path.exists() and not (args.force or args.resume):
+            raise CommandError(f"--key-out {path} exists; add --force to replace it")
+
+
+def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
+    """The run's config from the command line and the secrets' payloads; the payloads are checked
+    against the scene here."""
     config = common.config_from_args(args, RunConfig(secure=SecureConfig()), HIDE_DEFAULTS, device)
-    spec = PayloadSpec.parse(config.secure.payload)
+    payload = SECRET_SEPARATOR.join(s.payload for s in secrets)
+    specs = parse_secrets(payload)
+    config = dataclasses.replace(config, secure=dataclasses.replace(config.secure, payload=payload))
     scene = config.scene
-    if spec.kind in ("object", "scene"):
+    kinds = [spec.kind for spec in specs if spec.kind in ("object", "scene")]
+    if kinds:
         if not scene.builtin:
-            raise CommandError(f"payload {spec.kind!r} needs hidden views, which only the built-in scenes render; "
+            raise CommandError(f"payload {kinds[0]!r} needs hidden views, which only the built-in scenes render; "
                                "on real data hide an image or bits")
         if scene.hidden is None:
-            scene = dataclasses.replace(scene, hidden="mug" if spec.kind == "object" else "scene")
+            scene = dataclasses.replace(scene, hidden="mug" if kinds[0] == "object" else "scene")
     elif scene.hidden is not None:
-        raise CommandError(f"--hide {scene.hidden}: payload {config.secure.payload!r} hides no object or scene")
+        raise CommandError(f"--hide {scene.hidden}: payload {payload!r} hides no object or scene")
     return dataclasses.replace(config, scene=scene)
 
 
@@ -100,8 +194,9 @@ def cmd_hide(args) -> int:
 
     common.check_run_arguments(args)
     device = common.resolve_device(args.device)
-    config = hide_config(args, device)
-    passphrase = passphrase_from(args)  # fail before training, not after
+    secrets = secret_options(args)  # fail before training, not after
+    config = hide_config(args, device, secrets)
+    passphrase = secrets[0].passphrase  # seals the checkpoints too
     common.quiet_warp()
     run = RunFolder(args.out)
     with private_files():
@@ -114,14 +209,15 @@ def cmd_hide(args) -> int:
         os.chmod(run.path, 0o700)
         trainer = SecureTrainer(config.scene.load(), config.train, config.secure, device=device)
         return common.start_training(trainer, run, record, resume, args,
-                              finish=lambda: finish_container(trainer, run, config, passphrase), passphrase=passphrase)
+                                     finish=lambda: finish_container(trainer, run, config, secrets),
+                                     passphrase=passphrase)
 
 
 def recorded(config: RunConfig) -> RunConfig:
     """What config.json records: the config with a literal bit message replaced by its length
     (``bits:0b1011`` -> ``bits:4``). The message itself is kept only in the key and the
     checkpoints, which a sealed run seals; resuming takes it from the checkpoint."""
-    payload = PayloadSpec.parse(config.secure.payload).describe()
+    payload = describe_secrets(parse_secrets(config.secure.payload))
     return dataclasses.replace(config, secure=dataclasses.replace(config.secure, payload=payload))
 
 
@@ -136,14 +232,12 @@ def private_files():
         os.umask(previous)
 
 
-def key_metadata(trainer) -> dict:
-    """What the key stores besides the private heads: everything ``reveal`` needs to render the
-    hidden payload (the cameras, which of them show it, the backgrounds, the rasterizer options)."""
-    p, scene = trainer.payload, trainer.scene
-    if p.image_view is not None:
-        cams = [scene.train[p.image_view]]
-    else:
-        cams = scene.test or scene.train
+def key_metadata(trainer, secret: int) -> dict:
+    """What secret ``secret``'s key stores besides its private heads: everything ``reveal`` needs to
+    render its hidden payload (the cameras, which of them show it, the backgrounds, the rasterizer
+    options); nothing about the other secrets."""
+    p, scene = trainer.payloads[secret], trainer.scene
+    cams = hidden_cameras(trainer, p)
     return {"payload": p.spec.describe(), "raster": to_dict(trainer.config.raster),
             "background": None if scene.background is None else [float(v) for v in scene.background],
             "hidden_background": p.background.tolist(), "cameras": [c.to_record() for c in cams],
@@ -151,16 +245,26 @@ def key_metadata(trainer) -> dict:
             "image_view": p.image_view}
 
 
-def finish_container(trainer, run: RunFolder, config: RunConfig, passphrase: str | None) -> dict:
-    """Write release + key, the three demo renders and metrics.json; returns the metrics."""
-    p = trainer.payload
-    public, key = save_container(run.path, trainer.model, key_metadata(trainer), passphrase)
+def hidden_cameras(trainer, payload) -> list[Camera]:
+    """The cameras a payload is revealed from: its image's view, or the held-out (else training) views."""
+    scene = trainer.scene
+    return [scene.train[payload.image_view]] if payload.image_view is not None else (scene.test or scene.train)
+
+
+def finish_container(trainer, run: RunFolder, config: RunConfig, secrets: list[SecretOptions]) -> dict:
+    """Write the release and a key per secret, the demo renders and metrics.json; returns the metrics.
+    Each secret's hidden metrics, key file and payload carry its suffix (none for the first, _2 ...)."""
+    keys = [KeyFile(key_metadata(trainer, i), s.key_out, s.passphrase) for i, s in enumerate(secrets)]
+    public, paths = save_container(run.path, trainer.model, keys)
     public_metrics = evaluate_model(trainer.model, trainer.scene, config, run, trainer.device)
     metrics = {f"{k}_public" if k in ("psnr", "ssim", "lpips", "fps", "size_mb") else k: v
                for k, v in public_metrics.items()}
-    metrics.update(trainer.evaluate_hidden())
-    metrics.update(key_file=key.name, anchors=trainer.model.anchors.num_anchors,
-                   train_seconds=round(trainer.train_seconds, 2), payload=p.spec.describe(),
+    for i, (p, path) in enumerate(zip(trainer.payloads, paths)):
+        suffix = secret_suffix(i)
+        metrics.update({k + suffix: v for k, v in trainer.evaluate_hidden(i).items()})
+        metrics.update({"key_file" + suffix: path.name if path.parent == run.path else str(path),
+                        "payload" + suffix: p.spec.describe()})
+    metrics.update(anchors=trainer.model.anchors.num_anchors, train_seconds=round(trainer.train_seconds, 2),
                    mode=trainer.strategy.mode, hidden_anchors=int(trainer.strategy_state["is_hidden"].sum()))
     scene = trainer.scene
     if scene.hidden_points is not None:
@@ -170,26 +274,30 @@ def finish_container(trainer, run: RunFolder, config: RunConfig, passphrase: str
     write_demo_renders(trainer, run)
     run.write_json(run.metrics, metrics)
     common.print_metrics(metrics)
-    if metrics.get("hidden_learnt") is False:
-        print(f"warning: the hidden payload was not learnt: its render ({metrics['psnr_hidden']:.2f} dB) is not "
-              f"1 dB better than a flat image of each target's mean colour ({metrics['psnr_hidden_flat']:.2f} dB). "
-              "Train longer (--iterations) or let more of the hidden loss reach the anchor features "
-              "(--hidden-feature-grad).", file=sys.stderr)
+    for i in range(len(trainer.payloads)):
+        suffix = secret_suffix(i)
+        if metrics.get("hidden_learnt" + suffix) is False:
+            print(f"warning: the hidden payload was not learnt ({metrics['payload' + suffix]}): its render "
+                  f"({metrics['psnr_hidden' + suffix]:.2f} dB) is not 1 dB better than a flat image of each target's "
+                  f"mean colour ({metrics['psnr_hidden_flat' + suffix]:.2f} dB). Train longer (--iterations) or let "
+                  "more of the hidden loss reach the anchor features (--hidden-feature-grad).", file=sys.stderr)
     return metrics
 
 
 @torch.no_grad()
 def write_demo_renders(trainer, run: RunFolder) -> None:
-    """The public view, the hidden view with the key, and the same view without the key."""
-    p = trainer.payload
-    view = p.image_view if p.image_view is not None else 0
-    cams = trainer.scene.train if p.image_view is not None else (trainer.scene.test or trainer.scene.train)
-    cam = cams[view]
-    public = trainer.render(cam)["image"].clamp(0, 1)
-    save_png(run.renders / "public_view.png", public)
-    save_png(run.renders / "hidden_view_without_key.png", public)  # all a keyless viewer can get
-    if trainer.model.renders_hidden:
-        save_png(run.renders / "hidden_view_with_key.png", trainer.render_hidden(cam, view)["image"].clamp(0, 1))
+    """The public view, each secret's hidden view with its key (hidden_view_with_key.png,
+    hidden_view_with_key_2.png ...), and the first one's view without a key."""
+    for i, p in enumerate(trainer.payloads):
+        view = p.image_view if p.image_view is not None else 0
+        cam = hidden_cameras(trainer, p)[0]
+        if i == 0:
+            public = trainer.render(cam)["image"].clamp(0, 1)
+            save_png(run.renders / "public_view.png", public)
+            save_png(run.renders / "hidden_view_without_key.png", public)  # all a keyless viewer can get
+        if trainer.model.secrets[i].decoder is not None:
+            save_png(run.renders / f"hidden_view_with_key{secret_suffix(i)}.png",
+                     trainer.render_hidden(cam, view, secret=i)["image"].clamp(0, 1))
 
 
 @torch.no_grad()
@@ -272,10 +380,17 @@ def cmd_demo(args) -> int:
 
 
 def add_parsers(sub) -> None:
-    p = sub.add_parser("hide", help="train a container hiding a payload; write the public release and the key")
+    p = sub.add_parser("hide", help="train a container hiding a payload (or several, each behind its own key); "
+                                    "write the public release and the keys")
     common.add_config_flags(p, common.SCENE_FLAGS + common.TRAIN_FLAGS + SECURE_FLAGS, HIDE_DEFAULTS)
     common.add_run_arguments(p, default_out="runs/secure")
-    p.add_argument("--passphrase-env", help="seal the key with the passphrase in this environment variable")
+    p.add_argument("--key-out", help="where the (first) secret's key is written (default: OUT/key.safetensors, "
+                                     "or OUT/key.sealed when sealed)")
+    p.add_argument("--passphrase-env", help="seal the (first) secret's key and the run's checkpoints with the "
+                                            "passphrase in this environment variable")
+    p.add_argument("--and", dest="more", nargs=argparse.REMAINDER, metavar="SECRET",
+                   help="another secret behind its own key: --and --payload P --key-out FILE [--passphrase-env VAR]; "
+                        "repeatable; the run's options go before the first --and")
     p.set_defaults(func=cmd_hide)
 
     p = sub.add_parser("reveal", help="open a release: with the key the hidden payload (the key holds the cameras), "

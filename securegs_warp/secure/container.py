@@ -1,12 +1,14 @@
-"""A SecureGS container on disk: the public release (exactly Scaffold-GS's files) and the key.
+"""A SecureGS container on disk: the public release (exactly Scaffold-GS's files) and a key per secret.
 
     OUT/public/      point_cloud.ply + opacity_mlp.pt, cov_mlp.pt, color_mlp.pt: nothing else
-    OUT/key.safetensors  (or key.sealed with a passphrase): the private heads + JSON metadata,
-                     bound to the release by a fingerprint of its public MLPs
+    OUT/key.safetensors  (or key.sealed with a passphrase, or where the caller puts it): one
+                     secret's private heads + JSON metadata, bound to the release by a fingerprint of
+                     its public MLPs; every further secret's key is a file of the same kind
 
 The key's metadata holds everything ``reveal`` needs besides the release: the cameras (name, pose,
 intrinsics, size) the hidden views are rendered from, which of them show the hidden payload, the
 backgrounds and the rasterizer options. The key holder needs neither the training data nor the scene.
+A key holds its own secret only: nothing in it names or describes the release's other secrets.
 """
 from __future__ import annotations
 
@@ -34,26 +36,40 @@ def release_fingerprint(heads: ScaffoldHeads) -> str:
     return container_fingerprint({k: v.detach() for k, v in heads.state_dict().items()})
 
 
-def save_container(out: str | Path, model: SecureModel, metadata: dict,
-                   passphrase: str | None = None) -> tuple[Path, Path]:
-    """Write the release (``out/public``) and the key; returns (public folder, key path).
+@dataclasses.dataclass
+class KeyFile:
+    """One secret's key to write: metadata (JSON-able; see the module docstring for what reveal
+    reads), path (None: OUT/key.safetensors, or OUT/key.sealed when sealed), passphrase (None: plain)."""
 
-    metadata: JSON-able dict stored in the key (see the module docstring for what reveal reads).
-    """
-    private = model.private
-    if private is None:
+    metadata: dict
+    path: Path | None = None
+    passphrase: str | None = None
+
+
+def save_container(out: str | Path, model: SecureModel, keys: list[KeyFile]) -> tuple[Path, list[Path]]:
+    """Write the release (``out/public``) and one key per secret of ``model`` (``keys`` in the
+    order of ``model.secrets``); returns (public folder, the key paths)."""
+    if not len(model.secrets):
         raise ValueError("a container needs the private heads: this model has no key")
-    if private.decoder is not None and private.offset_mlp is None:
-        raise ValueError("the w/o-HDGER ablation keeps explicit hidden offsets per anchor: it is a measurement "
-                         "mode and cannot be released as a container")
+    if len(keys) != len(model.secrets):
+        raise ValueError(f"the model holds {len(model.secrets)} secrets but {len(keys)} keys were given")
+    for private in model.secrets:
+        if private.decoder is not None and private.offset_mlp is None:
+            raise ValueError("the w/o-HDGER ablation keeps explicit hidden offsets per anchor: it is a measurement "
+                             "mode and cannot be released as a container")
     out = Path(out)
     public = out / PUBLIC_DIR
+    paths = [Path(k.path) if k.path is not None else out / (SEALED_KEY if k.passphrase else PLAIN_KEY) for k in keys]
+    if len({p.resolve() for p in paths}) != len(paths):
+        raise ValueError("two secrets' keys would be written to the same file: give each its own path")
     save_scaffold(public, model.anchors, model.heads)
-    key = out / (SEALED_KEY if passphrase else PLAIN_KEY)
-    (out / (PLAIN_KEY if passphrase else SEALED_KEY)).unlink(missing_ok=True)  # no stale key of the other kind
-    tensors = {_PREFIX + name: value.detach() for name, value in private.state_dict().items()}
-    save_key(key, tensors, {**metadata, "heads": private.describe()}, release_fingerprint(model.heads), passphrase)
-    return public, key
+    fingerprint = release_fingerprint(model.heads)
+    for private, key, path in zip(model.secrets, keys, paths):
+        if key.path is None:  # no stale key of the other kind beside the default one
+            (out / (PLAIN_KEY if key.passphrase else SEALED_KEY)).unlink(missing_ok=True)
+        tensors = {_PREFIX + name: value.detach() for name, value in private.state_dict().items()}
+        save_key(path, tensors, {**key.metadata, "heads": private.describe()}, fingerprint, key.passphrase)
+    return public, paths
 
 
 def open_container(public: str | Path, key: str | Path | None = None, passphrase: str | None = None,
@@ -70,7 +86,7 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
     of a key is refused a release it was not made for. The key's own integrity is still checked."""
     anchors, heads = load_scaffold(public, device=device)
     if key is None:
-        return SecureModel(anchors, heads, None), {}
+        return SecureModel(anchors, heads, []), {}
     expected = release_fingerprint(heads) if check_fingerprint else None
     tensors, metadata = load_key(key, passphrase, expected_fingerprint=expected)
     if "bits" in metadata.get("heads", {}):
@@ -81,7 +97,7 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
         private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})
     except (KeyError, TypeError, RuntimeError) as e:
         raise KeyFileError(f"{key}: the key's heads do not fit this release ({e})") from None
-    return SecureModel(anchors, heads, private), metadata
+    return SecureModel(anchors, heads, [private]), metadata
 
 
 @dataclasses.dataclass

@@ -1,8 +1,9 @@
-"""``SecureModel``: a Scaffold-GS model plus the key's private heads, which render the hidden payload
-from the same public anchors and read the hidden bits from their features."""
+"""``SecureModel``: a Scaffold-GS model plus the private heads of its secrets, which render each
+hidden payload from the same public anchors and read each hidden message from their features."""
 from __future__ import annotations
 
 import torch
+from torch import nn
 
 from ..model import AnchorModel, ScaffoldHeads
 from ..model.neural_gaussians import AnchorViewInputs, visible_anchor_mask
@@ -13,47 +14,56 @@ from .heads import PrivateHeads
 
 
 class SecureModel(ScaffoldModel):
-    """``private``: the key's heads (``PrivateHeads``), or None for a release opened without the key
-    (then it renders only what any Scaffold-GS viewer renders)."""
+    """``secrets``: one ``PrivateHeads`` per secret (the contents of one key each). A release opened
+    with a key holds that key's heads only; one opened without a key holds none and renders only
+    what any Scaffold-GS viewer renders; a trainer's model holds every secret's. Methods that read a
+    secret take its index ``secret`` (default the first)."""
 
-    def __init__(self, anchors: AnchorModel, heads: ScaffoldHeads, private: PrivateHeads | None):
+    def __init__(self, anchors: AnchorModel, heads: ScaffoldHeads, secrets: list[PrivateHeads]):
         super().__init__(anchors, heads)
-        self.private = private
+        self.secrets = nn.ModuleList(secrets)
+
+    @property
+    def private(self) -> PrivateHeads | None:
+        """The key's heads of a model with one secret (None: opened without a key)."""
+        if len(self.secrets) > 1:
+            raise ValueError(f"this model holds the heads of {len(self.secrets)} secrets: pick one by index")
+        return self.secrets[0] if len(self.secrets) else None
 
     @property
     def renders_hidden(self) -> bool:
         """Whether the key holds a hidden decoder (an object, scene or image payload)."""
         return self.private is not None and self.private.decoder is not None
 
-    def _key(self) -> PrivateHeads:
-        if self.private is None:
+    def _key(self, secret: int) -> PrivateHeads:
+        if not len(self.secrets):
             raise ValueError("this release was opened without its key: nothing hidden can be read")
-        return self.private
+        return self.secrets[secret]
 
     def render_hidden(self, camera, options: RasterOptions | None = None, *, background: torch.Tensor | None = None,
                       camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
-                      anchors=None) -> dict:
-        """The hidden branch's render of a view (as ``ScaffoldModel.render``); needs the key.
+                      anchors=None, secret: int = 0) -> dict:
+        """Secret ``secret``'s hidden render of a view (as ``ScaffoldModel.render``); needs its key.
 
         feature_grad, scaling_grad: the share of this render's gradient that reaches the public
         anchor features and scalings (training only; see ``generate_neural_gaussians``).
         anchors: what to decode instead of this model's anchors: robust training's
         ``PerturbedAnchors`` (same rows; its ``keep`` mask drops anchors from the render).
         """
-        private = self._key()
+        private = self._key(secret)
         if private.decoder is None:
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
         anchors = self.anchors if anchors is None else anchors
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
-                           anchor_mask=self._decoding_mask(anchors, camera))
+                           anchor_mask=self._decoding_mask(private, anchors, camera))
 
-    def _decoding_mask(self, anchors, camera) -> torch.Tensor | None:
-        """[N] bool, the anchors whose hidden Gaussians are decoded for ``camera``: the box frame's
-        serving anchors, else the visible ones (None: render_view's visibility test), less those
-        robust training drops (``PerturbedAnchors.keep``)."""
-        mask = self.private.serving_mask(anchors.xyz)
+    def _decoding_mask(self, private: PrivateHeads, anchors, camera) -> torch.Tensor | None:
+        """[N] bool, the anchors whose hidden Gaussians ``private`` decodes for ``camera``: the box
+        frame's serving anchors, else the visible ones (None: render_view's visibility test), less
+        those robust training drops (``PerturbedAnchors.keep``)."""
+        mask = private.serving_mask(anchors.xyz)
         keep = getattr(anchors, "keep", None)
         if keep is None:
             return mask
@@ -63,11 +73,11 @@ class SecureModel(ScaffoldModel):
         return mask & keep
 
     @torch.no_grad()
-    def hidden_gaussians(self, camera) -> dict:
-        """Every anchor decoded by the key into hidden Gaussians with ``camera``'s view directions (no
-        culling; in the box frame, the serving anchors'): the whole hidden payload, for export (see
-        ``ScaffoldModel.gaussians``)."""
-        private = self._key()
+    def hidden_gaussians(self, camera, secret: int = 0) -> dict:
+        """Every anchor decoded by secret ``secret``'s key into hidden Gaussians with ``camera``'s
+        view directions (no culling; in the box frame, the serving anchors'): the whole hidden
+        payload, for export (see ``ScaffoldModel.gaussians``)."""
+        private = self._key(secret)
         if private.decoder is None:
             raise ValueError("this payload hides no image: there are no hidden Gaussians")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
@@ -79,10 +89,10 @@ class SecureModel(ScaffoldModel):
         return self.anchors.hidden_offsets[inputs.anchor_index] * inputs.scaling[:, None, :3]
 
     @torch.no_grad()
-    def decode_bits(self, anchors: AnchorModel | None = None) -> torch.Tensor:
-        """The hidden message [L] (0/1 int64) read from the features of ``anchors`` (default: this
-        model's own); needs a key with a bit payload."""
-        private = self._key()
+    def decode_bits(self, anchors: AnchorModel | None = None, secret: int = 0) -> torch.Tensor:
+        """Secret ``secret``'s hidden message [L] (0/1 int64) read from the features of ``anchors``
+        (default: this model's own); needs a key with a bit payload."""
+        private = self._key(secret)
         if private.bits is None:
             raise ValueError("this key hides no bits")
         anchors = self.anchors if anchors is None else anchors

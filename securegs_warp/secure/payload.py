@@ -3,8 +3,11 @@
 A payload spec is a string such as ``object``, ``scene``, ``image``, ``image:logo.png@3``,
 ``bits:48`` or a combination ``object+bits:48``. Objects and scenes come with the scene data (a
 hidden view per camera); an image is a file, or ``builtin`` (a procedural emblem); bits are drawn
-drawn from the operating system's secure random source (not from the training seed, which
-config.json records) or given literally (``bits:0b0110...``).
+from the operating system's secure random source (not from the training seed, which config.json
+records) or given literally (``bits:0b0110...``).
+
+A release can hold several secrets, each behind its own key: their payloads are joined with
+``,`` (``object+bits:48,bits:64,image``; ``parse_secrets``).
 """
 from __future__ import annotations
 
@@ -72,6 +75,24 @@ class PayloadSpec:
         a secret of the key)."""
         parts = [self.kind if self.kind != "image" else f"image:{self.image}@{self.image_view}"] if self.kind else []
         return "+".join(parts + ([f"bits:{self.bits}"] if self.bits else []))
+
+
+SECRET_SEPARATOR = ","
+
+
+def parse_secrets(text: str) -> list[PayloadSpec]:
+    """The payload of each secret of a release (``SECRET_SEPARATOR`` between them). A synthetic
+    scene renders the hidden views of one object or scene, so at most one secret hides one."""
+    specs = [PayloadSpec.parse(part) for part in text.split(SECRET_SEPARATOR)]
+    if sum(spec.kind in ("object", "scene") for spec in specs) > 1:
+        raise ValueError(f"payload {text!r}: at most one secret per release can hide an object or a scene (the "
+                         "scene renders the hidden views of one); the others can hide images or bits")
+    return specs
+
+
+def describe_secrets(specs: list[PayloadSpec]) -> str:
+    """The secrets' payloads as one string ``parse_secrets`` reads back (without literal messages)."""
+    return SECRET_SEPARATOR.join(spec.describe() for spec in specs)
 
 
 def _parse_bits(arg: str) -> tuple[int, str | None]:

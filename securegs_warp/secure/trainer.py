@@ -1,10 +1,10 @@
-"""SecureGS training: the Scaffold-GS trainer plus a private hidden branch.
+"""SecureGS training: the Scaffold-GS trainer plus a private hidden branch per secret.
 
-Per step: the public render of a training view gives ℓ_ori; the private heads decode the same
-anchors into hidden Gaussians (positions from F_o†) rendered from the same camera against the
-payload's hidden view (or, for an image payload, from the one chosen view) for λ·ℓ_hid; a bit
-payload moves each anchor feature onto its bit of the keyed decoder F_b† after every step. One
-backward through both renders, then the region-aware strategy looks at both branches' gradients.
+Per step: the public render of a training view gives ℓ_ori; each secret's private heads decode the
+same anchors into hidden Gaussians (positions from its F_o†) rendered from the same camera against
+its payload's hidden view (or, for an image payload, from the one chosen view) for λ·ℓ_hid; each
+bit payload moves the anchor features onto its bit of its keyed decoder F_b† after every step. One
+backward through all renders, then the region-aware strategy looks at every branch's gradients.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
 from .keyed_bits import BIT_CELL_VOXELS, new_seed
 from .model import SecureModel
-from .payload import PayloadSpec, build_payload, message_string
+from .payload import Payload, build_payload, message_string, parse_secrets
 from .robust import parse_robust, perturb, public_opacity
 
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
@@ -27,51 +27,80 @@ from .robust import parse_robust, perturb, public_opacity
 HIDDEN_LEARNT_MARGIN_DB = 1.0
 # The box frame's box: the hidden object's bounds grown by this fraction of their diagonal.
 BOX_MARGIN = 0.05
+# With several bit payloads each anchor feature must agree with one bit of every message: the
+# projections onto their half-spaces alternate this many times after each step (alternating
+# projections onto convex sets approach their intersection; the keys' directions are nearly
+# orthogonal, so few rounds are needed).
+PROJECTION_ROUNDS = 3
+
+
+def secret_suffix(secret: int) -> str:
+    """What a metric of secret ``secret`` (0-based) is suffixed with: nothing for the first, _2, _3 ..."""
+    return "" if secret == 0 else f"_{secret + 1}"
+
 
 class SecureTrainer(ScaffoldTrainer):
-    """Trains a ``SecureModel``: the Scaffold-GS trainer plus the key's private heads and payload.
+    """Trains a ``SecureModel``: the Scaffold-GS trainer plus each secret's private heads and payload.
 
-    secure: the SecureGS options (payload, λ, gradient shares, HDGER, density strategy); its
+    secure: the SecureGS options (payloads, λ, gradient shares, HDGER, density strategy); its
     strategy's schedule is scaled to ``config.iterations``. Attributes beyond the base class:
-    ``secure``, ``payload`` (the hidden targets).
+    ``secure``, ``payloads`` (each secret's hidden targets, in the order of ``model.secrets``).
     """
 
     def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
         self.secure = secure
         self.robust = parse_robust(secure.robust) if secure.robust else []
         # Built before the model, so that a payload the scene cannot carry fails before training.
-        self.payload = build_payload(PayloadSpec.parse(secure.payload), scene, torch.device(device))
-        if secure.hidden_weight is not None:
-            self.payload.weight = float(secure.hidden_weight)
-        # The bit decoder's seed is secret like the message (not from the training seed, which
-        # config.json records); a checkpoint keeps both.
-        self.bit_seed = new_seed() if self.payload.bits is not None else None
+        self.payloads = [build_payload(spec, scene, torch.device(device)) for spec in parse_secrets(secure.payload)]
+        if not secure.hdger and sum(p.has_images for p in self.payloads) > 1:
+            raise ValueError("w/o HDGER the anchors hold one set of explicit hidden offsets: it trains one hidden "
+                             "image payload, not several")
+        for p in self.payloads:
+            if secure.hidden_weight is not None:
+                p.weight = float(secure.hidden_weight)
+        # Each bit decoder's seed is secret like its message (not from the training seed, which
+        # config.json records), drawn apart for every secret; a checkpoint keeps them.
+        self.bit_seeds = [new_seed() if p.bits is not None else None for p in self.payloads]
         strategy = secure.strategy.scaled_to(config.iterations)
-        strategy.hidden_weight = self.payload.weight  # ∇_hid per unit of ℓ_hid (RegionAwareStrategy)
-        strategy.use_bbox = self.payload.spec.kind in ("object", "image")
+        strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
+                             and any(p.spec.kind in ("object", "image") for p in self.payloads))
         super().__init__(scene, config, device=device, strategy=strategy)
 
+    @property
+    def payload(self) -> Payload:
+        """The payload of a run with one secret."""
+        if len(self.payloads) != 1:
+            raise ValueError(f"this run hides {len(self.payloads)} secrets: pick one of payloads by index")
+        return self.payloads[0]
+
     def _make_model(self, anchors, heads) -> SecureModel:
-        options = self.secure.private_options()
-        bit_cell = BIT_CELL_VOXELS * anchors.voxel_size if self.payload.bits is not None else None
-        private = PrivateHeads(heads, message=message_string(self.payload.bits), bit_seed=self.bit_seed, bit_cell=bit_cell,
-                               offsets=self.secure.hdger, hidden=self.payload.has_images,
-                               **options).to(anchors.xyz.device)
+        bit_cell = BIT_CELL_VOXELS * anchors.voxel_size
+        secrets = [self._make_private(heads, p, seed, bit_cell).to(anchors.xyz.device)
+                   for p, seed in zip(self.payloads, self.bit_seeds)]
+        if not self.secure.hdger and any(p.has_images for p in self.payloads):
+            anchors.add_hidden_offsets()
+        return SecureModel(anchors, heads, secrets)
+
+    def _make_private(self, heads, payload: Payload, bit_seed: str | None, bit_cell: float) -> PrivateHeads:
+        options = self.secure.private_options(payload.spec.kind)
+        private = PrivateHeads(heads, message=message_string(payload.bits), bit_seed=bit_seed,
+                               bit_cell=None if payload.bits is None else bit_cell,
+                               offsets=self.secure.hdger, hidden=payload.has_images, **options)
         if options["frame"] == "box" and private.decoder is not None:
             bounds = getattr(self.scene, "hidden_bbox", None)
-            if bounds is None or self.payload.spec.kind != "object":
+            if bounds is None or payload.spec.kind != "object":
                 raise ValueError("hidden_frame 'box' decodes a hidden object inside its bounds: it needs an object "
                                  "payload on a scene that knows the object's box")
             lo, hi = np.asarray(bounds, dtype=np.float32)
             margin = BOX_MARGIN * float(np.linalg.norm(hi - lo))  # room for splats that reach past the surface
             private.set_box(lo - margin, hi + margin)
-        if private.decoder is not None and not self.secure.hdger:
-            anchors.add_hidden_offsets()
-        return SecureModel(anchors, heads, private)
+        return private
 
     def head_groups(self) -> dict:
         groups = dict(self.model.heads.named_mlps())
-        groups.update({"private_" + name: module for name, module in self.model.private.named_mlps().items()})
+        for i, private in enumerate(self.model.secrets):
+            prefix = "private_" if i == 0 else f"private{i + 1}_"  # the schedules strip it (_mlp_schedule)
+            groups.update({prefix + name: module for name, module in private.named_mlps().items()})
         return groups
 
     def config_sections(self) -> dict:
@@ -80,12 +109,12 @@ class SecureTrainer(ScaffoldTrainer):
     # -- rendering ------------------------------------------------------------------------------
 
     def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None,
-                      anchors=None) -> dict:
-        """The hidden branch's render of a view, with the gradient shares of training ``step``
-        (default: the step counter); ``anchors``: robust training's perturbed anchors."""
-        return self.model.render_hidden(cam, self.config.raster, background=self.payload.background,
+                      anchors=None, secret: int = 0) -> dict:
+        """Secret ``secret``'s hidden render of a view, with the gradient shares of training
+        ``step`` (default: the step counter); ``anchors``: robust training's perturbed anchors."""
+        return self.model.render_hidden(cam, self.config.raster, background=self.payloads[secret].background,
                                         camera_index=camera_index, feature_grad=self.current_feature_grad(step),
-                                        scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors)
+                                        scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors, secret=secret)
 
     def current_feature_grad(self, step: int | None = None) -> float:
         """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
@@ -95,44 +124,57 @@ class SecureTrainer(ScaffoldTrainer):
         return self.secure.hidden_feature_grad
 
     def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
-        p, extra = self.payload, {}
-        # Robust training: this step's hidden render reads randomly attacked anchors (the bits are
+        extra, hidden = {}, []
+        # Robust training: this step's hidden renders read randomly attacked anchors (the bits are
         # projected into every anchor after the update, see after_update).
         anchors = perturb(self.model.anchors, self.robust, self.generator,
                           public_opacity(branches["public"][0], self.model.anchors)) if self.robust else None
-        view = index if p.views is not None else p.image_view
-        if view is not None:
-            out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors)
+        for secret, p in enumerate(self.payloads):
+            view = index if p.views is not None else p.image_view
+            if view is None:
+                continue
+            out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors,
+                                     secret=secret)
             target = p.views[view] if p.views is not None else p.image
             loss = loss + p.weight * self.image_loss(out, target)
-            branches["hidden"] = (out["gaussians"], out["info"])
-            extra["psnr_hidden"] = psnr(out["image"].detach(), target)
+            hidden.append((out["gaussians"], out["info"], p.weight))
+            extra["psnr_hidden" + secret_suffix(secret)] = psnr(out["image"].detach(), target)
+        if hidden:
+            branches["hidden"] = hidden
         return loss, extra
 
     @torch.no_grad()
     def after_update(self) -> None:
         """Move each anchor feature the least distance that makes its vote agree with its bit of
-        the message by bit_margin (a projection, not a loss: a loss's gradient goes through Adam,
+        every message by bit_margin (a projection, not a loss: a loss's gradient goes through Adam,
         which turns it into steps of the learning rate on every coordinate and cost the cover
         0.3-1.2 dB; the projection moves a feature along one direction, only as far as needed)."""
-        if self.payload.bits is not None:
-            anchors = self.model.anchors
-            anchors.feat.copy_(self.model.private.bits.project(anchors.feat, anchors.xyz, self.secure.bit_margin))
+        decoders = [private.bits for private in self.model.secrets if private.bits is not None]
+        if not decoders:
+            return
+        anchors = self.model.anchors
+        feat = anchors.feat.detach()
+        for _ in range(PROJECTION_ROUNDS if len(decoders) > 1 else 1):
+            for decoder in decoders:
+                feat = decoder.project(feat, anchors.xyz, self.secure.bit_margin)
+        anchors.feat.copy_(feat)
 
     # -- evaluation -----------------------------------------------------------------------------
 
     @torch.no_grad()
-    def evaluate_hidden(self) -> dict:
-        """Hidden-branch metrics: PSNR/SSIM on held-out views (object, scene) or at the image's
-        view, and bit accuracy."""
-        p, out = self.payload, {}
+    def evaluate_hidden(self, secret: int = 0) -> dict:
+        """Secret ``secret``'s hidden metrics: PSNR/SSIM on held-out views (object, scene) or at the
+        image's view, and bit accuracy."""
+        p, out = self.payloads[secret], {}
+        def render(cam, index=None):
+            return self.render_hidden(cam, index, secret=secret)["image"].clamp(0, 1)
+
         if p.views is not None and p.test_views is not None:
-            pairs = [(self.render_hidden(c)["image"].clamp(0, 1), t) for c, t in zip(self.scene.test, p.test_views)]
+            pairs = [(render(c), t) for c, t in zip(self.scene.test, p.test_views)]
         elif p.views is not None:
-            pairs = [(self.render_hidden(c, i)["image"].clamp(0, 1), t)
-                     for i, (c, t) in enumerate(zip(self.scene.train, p.views))]
+            pairs = [(render(c, i), t) for i, (c, t) in enumerate(zip(self.scene.train, p.views))]
         elif p.image is not None:
-            pairs = [(self.render_hidden(self.scene.train[p.image_view], p.image_view)["image"].clamp(0, 1), p.image)]
+            pairs = [(render(self.scene.train[p.image_view], p.image_view), p.image)]
         else:
             pairs = []
         if pairs:
@@ -142,46 +184,59 @@ class SecureTrainer(ScaffoldTrainer):
             # never learnt (too small a gradient share, too short a run) renders the bare
             # background or noise, no better than that: no failure to the metrics above, but one to
             # the person who hid something. None where a target is itself flat.
-            flat = float(np.mean([psnr(target.mean(dim=(0, 1)).expand_as(target), target) for _, target in pairs]))
+            flat = flat_image_psnr([target for _, target in pairs])
             if np.isfinite(flat):
                 out["psnr_hidden_flat"] = flat
                 out["hidden_learnt"] = out["psnr_hidden"] > flat + HIDDEN_LEARNT_MARGIN_DB
             else:
                 out["psnr_hidden_flat"] = out["hidden_learnt"] = None
             cams = self.scene.test or self.scene.train
-            out["fps_hidden"] = evaluation.render_fps(self.render_hidden, cams, self.device)
+            out["fps_hidden"] = evaluation.render_fps(lambda cam: self.render_hidden(cam, secret=secret), cams,
+                                                      self.device)
         if p.bits is not None:
             anchors = self.model.anchors
-            out["bit_accuracy"] = self.bit_accuracy()
+            out["bit_accuracy"] = self.bit_accuracy(secret=secret)
             # One bit per anchor: a message longer than a model's anchors can carry reads 0 where no
             # anchor votes.
-            out["bits_without_voters"] = int((self.model.private.bits.vote(anchors.feat, anchors.xyz)[1] == 0).sum())
+            votes = self.model.secrets[secret].bits.vote(anchors.feat, anchors.xyz)[1]
+            out["bits_without_voters"] = int((votes == 0).sum())
         return out
 
     @torch.no_grad()
-    def bit_accuracy(self, anchors=None) -> float | None:
-        """The fraction of the hidden message the key's bit decoder reads from ``anchors`` (an
-        ``AnchorModel``): this container's by default, or another model's (on a model trained
+    def bit_accuracy(self, anchors=None, secret: int = 0) -> float | None:
+        """The fraction of secret ``secret``'s message its key's bit decoder reads from ``anchors``
+        (an ``AnchorModel``): this container's by default, or another model's (on a model trained
         without this key it is a fair coin per bit: 0.5 on average). None without a bit payload."""
-        if self.payload.bits is None:
+        bits = self.payloads[secret].bits
+        if bits is None:
             return None
-        decoded = self.model.decode_bits(anchors)
-        return float((decoded == self.payload.bits.long()).float().mean())
+        decoded = self.model.decode_bits(anchors, secret=secret)
+        return float((decoded == bits.long()).float().mean())
 
     # -- checkpoints ----------------------------------------------------------------------------
 
     def checkpoint_state(self) -> dict:
-        state = {**super().checkpoint_state(), "private": self.model.private.state_dict()}
-        if self.payload.bits is not None:  # drawn at random when the run began: resuming keeps them
-            state["message"] = self.payload.bits.detach().cpu()
-            state["bit_seed"] = self.bit_seed
-        return state
+        # The messages and seeds were drawn at random when the run began: resuming keeps them.
+        return {**super().checkpoint_state(), "private": [private.state_dict() for private in self.model.secrets],
+                "messages": [None if p.bits is None else p.bits.detach().cpu() for p in self.payloads],
+                "bit_seeds": list(self.bit_seeds)}
 
     def restore(self, state: dict, path) -> None:
         super().restore(state, path)
-        self.model.private.load_state_dict(state["private"])
-        if self.payload.bits is not None:
-            self.payload.bits, self.bit_seed = state["message"].to(self.device), state["bit_seed"]
-            self.model.private.set_message(message_string(self.payload.bits), self.bit_seed,
-                                           self.model.private.bits.cell)
-            self.model.private.to(self.device)
+        if not isinstance(state.get("private"), list) or len(state["private"]) != len(self.payloads):
+            raise ValueError(f"{path}: the checkpoint holds another number of secrets (or was written by an earlier "
+                             "securegs-warp); start the run again")
+        self.bit_seeds = list(state["bit_seeds"])
+        for private, p, saved, message, seed in zip(self.model.secrets, self.payloads, state["private"],
+                                                    state["messages"], self.bit_seeds):
+            private.load_state_dict(saved)
+            if p.bits is not None:
+                p.bits = message.to(self.device)
+                private.set_message(message_string(p.bits), seed, private.bits.cell)
+                private.to(self.device)
+
+
+def flat_image_psnr(targets: list[torch.Tensor]) -> float:
+    """The mean PSNR of the best flat images (each target [H, W, 3]'s mean colour) against those
+    targets: what a render that holds nothing of them scores at best."""
+    return float(np.mean([psnr(t.mean(dim=(0, 1)).expand_as(t), t) for t in targets]))

@@ -48,16 +48,14 @@ class RegionAwareStrategy(ScaffoldStrategy):
     # The hidden Gaussians' opacity counts in the pruning statistic (an anchor that serves only the
     # hidden branch is kept); False prunes by the public opacity alone, as Scaffold-GS.
     hidden_opacity_keeps: bool = True
-    # The hidden render's gradients come from λ·ℓ_hid. Divided by λ (the trainer sets it), ∇_hid
+    # The hidden render's gradients come from λ·ℓ_hid. Divided by λ (each hidden branch's own), ∇_hid
     # measures the hidden image's own error, so τ_fix means the same for both branches and for
     # every payload (λ is 10 for objects, 0.1 for an image: undivided, an object grows ten times the
     # hidden anchors a public Gaussian with the same error would, and an image almost none).
     # hidden_grad_per_lambda=False accumulates λ·∇ as Algorithm 1 writes it (∇ℓ_total).
     hidden_grad_per_lambda: bool = True
-    # λ, set by SecureTrainer from its config (not an option of the strategy's own).
-    hidden_weight: typing.ClassVar[float] = 1.0
-    # Whether the hidden payload has a region to box (an object, an image); False for a whole hidden
-    # scene, whose box would be the whole scene. Set by SecureTrainer from the payload.
+    # Whether the hidden payloads have a region to box (an object, an image); False with a whole hidden
+    # scene, whose box would be the whole scene. Set by SecureTrainer from the payloads.
     use_bbox: typing.ClassVar[bool] = True
     anchor_state_keys = ScaffoldStrategy.anchor_state_keys + ("is_hidden",)
 
@@ -83,18 +81,18 @@ class RegionAwareStrategy(ScaffoldStrategy):
         return state
 
     def step_post_backward(self, model, optimizer, state, step, branches: dict, generator=None):
-        """branches: ``"public"`` and, when the step rendered one, ``"hidden"``: (gaussians, info)."""
+        """branches: ``"public"``: (gaussians, info), and, when the step rendered hidden views,
+        ``"hidden"``: a list of (gaussians, info, λ), one per secret rendered (λ: the weight of its
+        loss, which ∇_hid is divided by; see hidden_grad_per_lambda)."""
         if step <= self.start_stat or step > self.update_until:
             return {}
         k = model.n_offsets
         self.accumulate(state, *branches["public"], k)
-        hidden = branches.get("hidden") if self.mode != "cover" else None
-        if hidden is not None:
-            g_hid, info_hid = hidden
+        for g_hid, info_hid, weight in (branches.get("hidden", []) if self.mode != "cover" else []):
             if self.hidden_opacity_keeps:  # an anchor that only serves the hidden branch is still useful
                 opacity = g_hid["neural_opacity"].detach().clamp_min(0.0).view(-1, k).sum(dim=1)
                 state["opacity_accum"][g_hid["visible_mask"]] += opacity
-            scale = 1.0 / self.hidden_weight if self.hidden_grad_per_lambda and self.hidden_weight > 0 else 1.0
+            scale = 1.0 / weight if self.hidden_grad_per_lambda and weight > 0 else 1.0
             if self.mode in ("scaffold", "shared"):  # one gradient for both branches, every step
                 self.accumulate(state, g_hid, info_hid, k, opacity=False, grad_scale=scale)
             elif step % self.hidden_every == 0:  # ∇_hid, accumulated more slowly

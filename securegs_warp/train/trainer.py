@@ -53,12 +53,13 @@ class ScaffoldTrainer(ViewTrainer):
     # -- optimisation ---------------------------------------------------------------------------
 
     def _mlp_schedule(self, group_name: str) -> tuple:
-        """(initial, final) learning rate of an MLP group; private copies share the public schedule."""
+        """(initial, final) learning rate of an MLP group; private copies (``private_NAME``,
+        ``private2_NAME`` ...) share the public schedule."""
         c = self.config
         schedules = {"mlp_opacity": c.mlp_opacity_lr, "mlp_cov": c.mlp_cov_lr, "mlp_color": c.mlp_color_lr,
                      "mlp_featurebank": c.mlp_featurebank_lr, "appearance": c.appearance_lr,
                      "mlp_offset": c.mlp_offset_lr}
-        return schedules[group_name.removeprefix("private_")]
+        return schedules[group_name.split("_", 1)[1] if group_name.startswith("private") else group_name]
 
     def head_groups(self) -> dict:
         """Name → module of every trained MLP (the SecureGS trainer adds its private ones)."""
