@@ -22,6 +22,7 @@ DEPTH_MODES = (None, "accumulated", "expected")
 # Which tiles a Gaussian is binned to: every tile of its radius rectangle (gsplat 1.5), or only those
 # its ellipse at the alpha threshold reaches (same image, fewer intersections to sort and blend).
 TILE_OVERLAPS = ("ellipse", "rectangle")
+BACKWARD_WALKS = ("block", "warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +75,11 @@ class RasterOptions:
     # b32:backward_block=32 compares them).
     forward_block: int = 256
     backward_block: int = 256
+    # Where each pixel group of the backward starts its back-to-front walk of a batch: at the last
+    # Gaussian any pixel of the block used ("block"), or of its own CUDA warp ("warp", gsplat's
+    # bound: warps whose pixels stopped early skip the tail). Same gradients; launch work only
+    # (scripts/bench_rasterizer.py --variant warpwalk:backward_walk=warp compares them).
+    backward_walk: str = "block"
 
     def __post_init__(self):
         if self.tile_size not in (8, 16, 32):
@@ -84,6 +90,8 @@ class RasterOptions:
             raise ValueError(f"color_storage must be one of {tuple(COLOR_STORAGES)}, got {self.color_storage!r}")
         if self.tile_overlap not in TILE_OVERLAPS:
             raise ValueError(f"tile_overlap must be one of {TILE_OVERLAPS}, got {self.tile_overlap!r}")
+        if self.backward_walk not in BACKWARD_WALKS:
+            raise ValueError(f"backward_walk must be one of {BACKWARD_WALKS}, got {self.backward_walk!r}")
         if self.render_depth not in DEPTH_MODES:
             raise ValueError(f"render_depth must be one of {DEPTH_MODES}, got {self.render_depth!r}")
         if not 0.0 < self.near_plane < self.far_plane:
@@ -379,7 +387,8 @@ class RenderPlan:
         self._fwd_block = opts.block(opts.forward_block)
         self._bwd_block = opts.block(opts.backward_block)
         batch = batch_size(c, self._fwd_block, with_depth, opts.color_storage) if cooperative else CPU_BATCH
-        self._blend = blend_kernels(c, ts, with_depth, batch, cooperative, opts.color_storage, opts.fast_math)
+        self._blend = blend_kernels(c, ts, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
+                                    opts.backward_walk == "warp")
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
