@@ -9,6 +9,7 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import load_scaffold
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, psnr, ssim
+from securegs_warp.train.trainer import nonfinite_gradient_counts
 from securegs_warp.render import camera_tensors
 
 CPU_RASTER = RasterOptions(tile_size=8)
@@ -167,6 +168,19 @@ def test_cli_train_eval_render_export_and_resume(tmp_path, monkeypatch):
 def test_cli_reports_bad_scene(tmp_path, capsys):
     assert main(["train", "--scene", str(tmp_path / "missing"), "--out", str(tmp_path / "r"), "--quiet"]) == 2
     assert "missing" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("entries,expected", [
+    ([1.0, -2.0], {}),
+    ([3e38, 3e38], {}),  # finite, though their L1 norm overflows to inf: counted exactly, none bad
+    ([float("nan"), 1.0], {"b": 1}),
+    ([float("inf"), float("-inf")], {"b": 2}),  # their sum would be NaN, their count is 2
+])
+def test_nonfinite_gradient_counts(entries, expected):
+    a, b = torch.nn.Parameter(torch.zeros(3)), torch.nn.Parameter(torch.zeros(2))
+    a.grad, b.grad = torch.tensor([0.5, 1e30, -1e30]), torch.tensor(entries)
+    optimizer = torch.optim.Adam([{"params": [a], "name": "a"}, {"params": [b], "name": "b"}])
+    assert nonfinite_gradient_counts(optimizer) == expected
 
 
 def test_render_matches_camera(tiny_scene):

@@ -262,7 +262,9 @@ class ScaffoldTrainer:
 @torch.no_grad()
 def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int]:
     """Parameter group name -> number of inf/NaN gradient entries, for the groups that have any
-    (empty: every gradient is finite). One host sync.
+    (empty: every gradient is finite). One host sync: the finite case, every step's, costs one
+    fused reduction (the L1 norm of all gradients, which an inf or NaN entry makes non-finite); only
+    a non-finite norm, which huge finite entries can also give, counts entry by entry.
 
     The trainer skips a step with any such entry: no optimizer step, and no densification step
     either (neither its statistics nor, on an update step, growth and pruning, which wait for the
@@ -279,6 +281,8 @@ def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int
              for i, group in enumerate(optimizer.param_groups)]
     named = [(name, grads) for name, grads in named if grads]
     if not named:
+        return {}
+    if bool(torch.isfinite(torch.nn.utils.get_total_norm([g for _, grads in named for g in grads], norm_type=1.0))):
         return {}
     totals = torch.stack([sum((~torch.isfinite(g)).sum() for g in grads) for _, grads in named]).tolist()
     return {name: int(n) for (name, _), n in zip(named, totals) if n}
