@@ -62,6 +62,21 @@ def test_each_anchor_keeps_its_bit_when_others_are_pruned():
     assert set(bits.tolist()) == set(range(len(MESSAGE)))  # 2000 anchors give every bit voters
 
 
+def test_anchor_bits_follow_the_positions_bytes_not_a_stale_copy():
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed())
+    _, xyz = anchors()
+    fresh = lambda x: KeyedBitDecoder(32, MESSAGE, decoder.seed).anchor_bits(x)  # noqa: E731 (no history)
+    bits = decoder.anchor_bits(xyz)
+    assert torch.equal(decoder.anchor_bits(xyz.clone()), bits)  # same bytes: the kept bits
+    xyz[:, 0] = torch.where(xyz[:, 0] == 0, xyz[:, 0], xyz[:, 0] * 1.5)  # moved in place
+    assert torch.equal(decoder.anchor_bits(xyz), fresh(xyz))
+    assert not torch.equal(decoder.anchor_bits(xyz), bits)
+    zero = torch.zeros(4, 3)
+    negative_zero = -zero  # equal as numbers, other bytes: other hash words
+    assert torch.equal(decoder.anchor_bits(zero), fresh(zero))
+    assert torch.equal(decoder.anchor_bits(negative_zero), fresh(negative_zero))
+
+
 def test_projection_moves_only_the_features_that_disagree_and_only_along_their_bit():
     feat, xyz = anchors()
     decoder = KeyedBitDecoder(32, MESSAGE, new_seed())
