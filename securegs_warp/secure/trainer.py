@@ -79,12 +79,14 @@ class SecureTrainer(ScaffoldTrainer):
     # -- rendering ------------------------------------------------------------------------------
 
     def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None,
-                      anchors=None) -> dict:
+                      anchors=None, visible: torch.Tensor | None = None) -> dict:
         """The hidden branch's render of a view, with the gradient shares of training ``step``
-        (default: the step counter); ``anchors``: robust training's perturbed anchors."""
+        (default: the step counter); ``anchors``: robust training's perturbed anchors; ``visible``:
+        see ``SecureModel.render_hidden``."""
         return self.model.render_hidden(cam, self.config.raster, background=self.payload.background,
                                         camera_index=camera_index, feature_grad=self.current_feature_grad(step),
-                                        scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors)
+                                        scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors,
+                                        visible=visible)
 
     def current_feature_grad(self, step: int | None = None) -> float:
         """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
@@ -101,7 +103,10 @@ class SecureTrainer(ScaffoldTrainer):
                           public_opacity(branches["public"][0], self.model.anchors)) if self.robust else None
         view = index if p.views is not None else p.image_view
         if view is not None:
-            out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors)
+            # Same view and same anchors as the public render: its visibility test holds as it is.
+            visible = branches["public"][0]["visible_mask"] if view == index and anchors is None else None
+            out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors,
+                                     visible=visible)
             target = p.views[view] if p.views is not None else p.image
             loss = loss + p.weight * self.image_loss(out, target)
             branches["hidden"] = (out["gaussians"], out["info"])
