@@ -65,7 +65,10 @@ def warp_leader() -> bool:
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-    for (int offset = 16; offset > 0; offset >>= 1) x = max(x, __shfl_xor_sync(0xffffffff, x, offset));
+    for (int offset = 16; offset > 0; offset >>= 1) {
+        int other = __shfl_xor_sync(0xffffffff, x, offset);
+        x = other > x ? other : x;
+    }
 #endif
     return x;
 """)
@@ -98,7 +101,7 @@ def batch_size(channels: int, block: int, with_depth: bool, color_storage: str) 
 
 @functools.lru_cache(maxsize=None)
 def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
-                  color_storage: str, fast_math: bool, warp_walk: bool = False):
+                  color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 
@@ -112,6 +115,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     own 32 pixels used (gsplat's bound), instead of from the block's: the batches are still gathered
     for the whole block, but a warp whose pixels stopped early skips their tail without evaluating
     it. Same gradients; only the work skipped differs (a CPU thread is its own warp).
+    ``max_registers``: registers per thread the CUDA backward may use (``__maxnreg__``; 0: the
+    compiler's choice). Fewer registers let more blocks share a multiprocessor, at the risk of
+    spilling to local memory; the CPU ignores it.
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
@@ -373,8 +379,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
 
     tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
            f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}")
+    backward_tag = tag + (f"_r{max_registers}" if max_registers else "")
     forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
-    backward.__name__ = backward.__qualname__ = f"blend_backward_{tag}"
+    backward.__name__ = backward.__qualname__ = f"blend_backward_{backward_tag}"
     # fast_math is a module option: each variant gets its own module.
     options = dict(enable_backward=False, module="unique", module_options={"fast_math": fast_math})
-    return wp.kernel(forward, **options), wp.kernel(backward, **options)
+    registers = {"cuda_max_registers": max_registers} if max_registers else {}
+    return wp.kernel(forward, **options), wp.kernel(backward, **options, **registers)

@@ -80,6 +80,10 @@ class RasterOptions:
     # bound: warps whose pixels stopped early skip the tail). Same gradients; launch work only
     # (scripts/bench_rasterizer.py --variant warpwalk:backward_walk=warp compares them).
     backward_walk: str = "block"
+    # CUDA only: registers per thread the backward blending kernel may use (0: the compiler's
+    # choice, 92 for 3 channels on sm_90). At 256 threads a block, ≤ 80 fits 3 blocks on an H100
+    # multiprocessor instead of 2, ≤ 64 fits 4, against a few bytes spilled to local memory.
+    backward_max_registers: int = 0
 
     def __post_init__(self):
         if self.tile_size not in (8, 16, 32):
@@ -90,6 +94,9 @@ class RasterOptions:
             raise ValueError(f"color_storage must be one of {tuple(COLOR_STORAGES)}, got {self.color_storage!r}")
         if self.tile_overlap not in TILE_OVERLAPS:
             raise ValueError(f"tile_overlap must be one of {TILE_OVERLAPS}, got {self.tile_overlap!r}")
+        if self.backward_max_registers and not 32 <= self.backward_max_registers <= 255:
+            raise ValueError(f"backward_max_registers must be 0 (the compiler's choice) or in [32, 255], "
+                             f"got {self.backward_max_registers}")
         if self.backward_walk not in BACKWARD_WALKS:
             raise ValueError(f"backward_walk must be one of {BACKWARD_WALKS}, got {self.backward_walk!r}")
         if self.render_depth not in DEPTH_MODES:
@@ -388,7 +395,7 @@ class RenderPlan:
         self._bwd_block = opts.block(opts.backward_block)
         batch = batch_size(c, self._fwd_block, with_depth, opts.color_storage) if cooperative else CPU_BATCH
         self._blend = blend_kernels(c, ts, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
-                                    opts.backward_walk == "warp")
+                                    opts.backward_walk == "warp", opts.backward_max_registers)
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
