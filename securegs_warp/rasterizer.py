@@ -393,9 +393,7 @@ class RenderPlan:
         cooperative = not (self.device.is_cpu and not wp.config.enable_cpu_blocks)
         self._fwd_block = opts.block(opts.forward_block)
         self._bwd_block = opts.block(opts.backward_block)
-        batch = batch_size(c, self._fwd_block, with_depth, opts.color_storage) if cooperative else CPU_BATCH
-        self._blend = blend_kernels(c, ts, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
-                                    opts.backward_walk == "warp", opts.backward_max_registers)
+        self._blend = blend_kernels_for(opts, c, with_depth, cooperative)
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
@@ -466,6 +464,15 @@ class RenderPlan:
         adjoints = {key: [a.grad if isinstance(a, wp.array) else None for a in self._projection[key]]
                     for key in ("inputs", "outputs")}
         wp.launch(**self._projection, adj_inputs=adjoints["inputs"], adj_outputs=adjoints["outputs"], adjoint=True)
+
+
+def blend_kernels_for(opts: RasterOptions, channels: int, with_depth: bool, cooperative: bool):
+    """(forward, backward) blending kernels a render with ``opts`` launches for ``channels`` colour
+    channels (``cooperative``: CUDA's shared-memory batches; the CPU reads directly)."""
+    batch = batch_size(channels, opts.block(opts.forward_block), with_depth, opts.color_storage) if cooperative \
+        else CPU_BATCH
+    return blend_kernels(channels, opts.tile_size, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
+                         opts.backward_walk == "warp", opts.backward_max_registers)
 
 
 class _Scope:
