@@ -153,6 +153,9 @@ class ScaffoldTrainer:
             self.optimizer.step()
             self.after_update()
         self.optimizer.zero_grad(set_to_none=True)
+        # Numbers that read the device (a host synchronisation each) are taken here, once the whole
+        # step is queued; extra_losses may hand them over as functions for that reason.
+        extra = {key: value() if callable(value) else value for key, value in extra.items()}
         result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target),
                   "anchors": self.model.anchors.num_anchors, **extra, **changed}
         self._order.pop()
@@ -165,8 +168,9 @@ class ScaffoldTrainer:
         message there). Scaffold-GS has nothing to do."""
 
     def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
-        """Hook for the hidden branch: (total loss, numbers to report); a hidden render adds its
-        (gaussians, info) to ``branches`` under "hidden". Scaffold-GS has only the public loss."""
+        """Hook for the hidden branch: (total loss, numbers to report, each a value or a function
+        that gives it at the end of the step); a hidden render adds its (gaussians, info) to
+        ``branches`` under "hidden". Scaffold-GS has only the public loss."""
         return loss, {}
 
     @torch.no_grad()
