@@ -78,7 +78,8 @@ def render_fn(model, plain: ScaffoldHeads, variant: Variant, cam: Camera, device
     raster = RasterOptions(tile_size=tile_size, **variant.raster)
     private = None
     if variant.hidden is not None:
-        bits = {"message": "01" * (BITS // 2), "bit_seed": new_seed()} if variant.hidden == "bits" else {}
+        bits = ({"message": "01" * (BITS // 2), "bit_seed": new_seed(), "bit_cell": 0.1}
+                if variant.hidden == "bits" else {})
         private = PrivateHeads(heads, **bits, hidden=variant.hidden == "object").to(device)
         if private.decoder is not None:
             private.decoder.load_state_dict(heads.state_dict())

@@ -2,11 +2,15 @@
 
     RunConfig
     ├── scene: SceneSpec            what to train on (a built-in scene or a data folder)
-    ├── train: TrainConfig          Scaffold-GS training
+    ├── train: TrainConfig          training: which model (Scaffold-GS or plain 3DGS), its options
     │   ├── heads: HeadsConfig      which head inputs exist (feature bank, appearance, distances)
+    │   ├── gaussians: GaussiansConfig   plain 3DGS: SH degree and learning rates
     │   └── raster: RasterOptions   the rasterizer's options (tile size, antialiasing, ...)
     └── secure: SecureConfig | None SecureGS: payload, λ, gradient shares, HDGER
         └── strategy: RegionAwareStrategy   density optimisation (mode, r_down, ...)
+
+    StegaNeRFConfig                 the 3DGS + StegaNeRF baseline's fine-tuning (baselines.steganerf;
+                                    run by scripts/compare_methods.py, not a run folder's section)
 
 The CLI flags, ``config.json``, checkpoints, key metadata and the scripts' variants all go through
 :func:`to_dict` / :func:`from_dict` and :func:`apply_overrides`, by field name. A field that is off
@@ -49,14 +53,47 @@ class HeadsConfig:
             raise ValueError(f"appearance_dim must be >= 0, got {self.appearance_dim}")
 
 
+MODELS = ("scaffold", "3dgs")
+"""What ``securegs train`` can train: Scaffold-GS (anchors + MLPs) or plain 3DGS (explicit Gaussians)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GaussiansConfig:
+    """Plain 3DGS (``TrainConfig.model == "3dgs"``); defaults are 3DGS's for its 30k-step runs.
+
+    sh_degree: the largest spherical-harmonic degree of the colours (0..3). sh_interval: steps per
+    degree as 3DGS raises it from 0 (1000 of 30k; scaled to the run's length like the
+    densification schedule). Learning rates: means_lr an (initial, final) exponential schedule
+    times the scene's camera extent; features_rest at sh_lr / 20, as 3DGS.
+    """
+
+    sh_degree: int = 3
+    sh_interval: int = 1000
+    means_lr: tuple = (0.00016, 0.0000016)
+    sh_lr: float = 0.0025
+    opacity_lr: float = 0.05
+    scale_lr: float = 0.005
+    quat_lr: float = 0.001
+
+    def __post_init__(self):
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if self.sh_interval < 1:
+            raise ValueError(f"sh_interval must be >= 1, got {self.sh_interval}")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Scaffold-GS training; defaults are Scaffold-GS's (learning rates for its 30k-step runs).
+    """Training; defaults are Scaffold-GS's (learning rates for its 30k-step runs), and 3DGS's in
+    ``gaussians`` when ``model`` is "3dgs" (the Scaffold-GS fields other than the shared
+    iterations, seed, raster, ssim_weight and densify are then unused).
 
     Learning-rate pairs are (initial, final) of an exponential schedule over the run.
     """
 
     iterations: int = 30_000
+    model: str = "scaffold"
+    gaussians: GaussiansConfig = dataclasses.field(default_factory=GaussiansConfig)
     seed: int = 0
     voxel_size: float = 0.0  # <= 0: from the sparse points' nearest-neighbour distances
     heads: HeadsConfig = dataclasses.field(default_factory=HeadsConfig)
@@ -77,6 +114,58 @@ class TrainConfig:
     def __post_init__(self):
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class StegaNeRFConfig:
+    """StegaNeRF (Li et al., CVPR 2023) on a trained plain 3DGS scene: fine-tune the scene so that a
+    U-Net decoder recovers a hidden image from its render at any view. Defaults follow the authors'
+    code (chenxinli001/StegaNeRF, opt_stega.py) where it states them; the rest is marked.
+
+    iterations: fine-tuning steps (one training view each). rgb_target: what the fine-tuned render
+    is held to, "init" (the scene's render before fine-tuning, the authors' ``mse_cp init``) or
+    "gt" (the training images). tune: "color" (only the SH colours move, the authors' fixed-geometry
+    setting) or "all" (every Gaussian attribute; the 3DGS analogue of also training density).
+    rgb_weight, hidden_weight, clean_weight, classifier_weight: the loss weights of the render's MSE,
+    the decoder's MSE to the hidden image on fine-tuned renders, its MSE to black on the original
+    renders, and the classifier's BCE (the authors' w_rgb 1, w_wm 0.5 and w_wm_ctr 0.5 or 1, w_dis
+    0.01). gradient_masking: scale each SH coefficient's gradient by (e_min / e)^masking_power, e
+    the mean magnitude of that coefficient over the scene, so the coefficients that carry most of
+    the appearance move least (the authors' adaptive gradient masking; their power is a flag,
+    n_power_softw, default unknown here: 1). color_lr: Adam's learning rate for the SH
+    coefficients (3DGS's; the paper's grid optimiser has no counterpart). decoder_lr,
+    decoder_width: the U-Net's and classifier's Adam learning rate and first-level width (not in
+    the paper's text; small enough for the CPU).
+    """
+
+    iterations: int = 600
+    rgb_target: str = "init"
+    tune: str = "color"
+    rgb_weight: float = 1.0
+    hidden_weight: float = 1.0
+    clean_weight: float = 1.0
+    classifier_weight: float = 0.01
+    gradient_masking: bool = True
+    masking_power: float = 1.0
+    color_lr: float = 0.0025
+    decoder_lr: float = 0.001
+    decoder_width: int = 16
+
+    def __post_init__(self):
+        if self.iterations < 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        if self.rgb_target not in ("init", "gt"):
+            raise ValueError(f"rgb_target must be 'init' or 'gt', got {self.rgb_target!r}")
+        if self.tune not in ("color", "all"):
+            raise ValueError(f"tune must be 'color' or 'all', got {self.tune!r}")
+        if self.decoder_width < 1:
+            raise ValueError(f"decoder_width must be >= 1, got {self.decoder_width}")
+        for name in ("rgb_weight", "hidden_weight", "clean_weight", "classifier_weight", "masking_power",
+                     "color_lr", "decoder_lr"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
@@ -220,6 +309,11 @@ class RunConfig:
     scene: SceneSpec = dataclasses.field(default_factory=SceneSpec)
     train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
     secure: SecureConfig | None = None
+
+    def __post_init__(self):
+        if self.secure is not None and self.train.model != "scaffold":
+            raise ValueError(f"SecureGS hides in a Scaffold-GS model; train.model {self.train.model!r} cannot "
+                             "carry its payload")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -149,6 +149,7 @@ def test_bits_only_payload_builds_no_hidden_decoder_and_renders_as_plain():
     spec = PayloadSpec.parse("bits:16")
     assert spec.kind is None and spec.bits == 16
     plain = plain_heads()
-    private = PrivateHeads(plain, message="01" * (spec.bits // 2), bit_seed=new_seed(), hidden=spec.kind is not None)
+    private = PrivateHeads(plain, message="01" * (spec.bits // 2), bit_seed=new_seed(), bit_cell=0.1,
+                           hidden=spec.kind is not None)
     assert private.decoder is None and private.offset_mlp is None and private.n_bits == 16
     assert torch.equal(render(plain)["image"], render(plain_heads())["image"])

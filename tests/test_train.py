@@ -9,7 +9,7 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import load_scaffold
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, psnr, ssim
-from securegs_warp.train.trainer import nonfinite_gradient_counts
+from securegs_warp.train.base import nonfinite_gradient_counts
 from securegs_warp.render import camera_tensors
 
 CPU_RASTER = RasterOptions(tile_size=8)

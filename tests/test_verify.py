@@ -12,6 +12,7 @@ from securegs_warp.secure.verification import binomial_tail, verify_message
 
 TINY = ["--width", "40", "--height", "30", "--train-views", "4", "--test-views", "1", "--quiet"]
 MESSAGE = "101100111000111101011001001110100010110111001010"
+CELL = 0.5  # the keyed grid's edge for positions spread over [0, 10]^3
 
 
 def anchors(n: int = 2000, d: int = 32, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -39,22 +40,22 @@ def test_binomial_tail_is_exact():
 
 def test_decoder_is_derived_from_seed_and_message_only():
     seed = new_seed()
-    a, b = KeyedBitDecoder(32, MESSAGE, seed), KeyedBitDecoder(32, MESSAGE, seed)
+    a, b = KeyedBitDecoder(32, MESSAGE, seed, CELL), KeyedBitDecoder(32, MESSAGE, seed, CELL)
     assert torch.equal(a.directions, b.directions)
     # another message (a forger's choice) gives an unrelated decoder under the same seed
-    other = KeyedBitDecoder(32, "0" + MESSAGE[1:], seed)
+    other = KeyedBitDecoder(32, "0" + MESSAGE[1:], seed, CELL)
     assert not torch.equal(a.directions, other.directions)
     assert a.state_dict() == {}  # nothing but the seed and message needs storing
     u = keyed_uniform(seed, "x", (100_000,))
     assert -1 < float(u.min()) and float(u.max()) < 1 and abs(float(u.mean())) < 0.01
     with pytest.raises(ValueError, match="seed"):
-        KeyedBitDecoder(32, MESSAGE, "00ff")
+        KeyedBitDecoder(32, MESSAGE, "00ff", CELL)
     with pytest.raises(ValueError, match="message"):
-        KeyedBitDecoder(32, "0120", seed)
+        KeyedBitDecoder(32, "0120", seed, CELL)
 
 
 def test_each_anchor_keeps_its_bit_when_others_are_pruned():
-    decoder = KeyedBitDecoder(32, MESSAGE, new_seed())
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
     _, xyz = anchors()
     bits = decoder.anchor_bits(xyz)
     keep = torch.rand(len(xyz), generator=torch.Generator().manual_seed(1)) > 0.2
@@ -62,24 +63,38 @@ def test_each_anchor_keeps_its_bit_when_others_are_pruned():
     assert set(bits.tolist()) == set(range(len(MESSAGE)))  # 2000 anchors give every bit voters
 
 
-def test_anchor_bits_follow_the_positions_bytes_not_a_stale_copy():
-    decoder = KeyedBitDecoder(32, MESSAGE, new_seed())
+def test_anchor_bits_follow_the_positions_not_a_stale_copy():
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
     _, xyz = anchors()
-    fresh = lambda x: KeyedBitDecoder(32, MESSAGE, decoder.seed).anchor_bits(x)  # noqa: E731 (no history)
+    fresh = lambda x: KeyedBitDecoder(32, MESSAGE, decoder.seed, CELL).anchor_bits(x)  # noqa: E731 (no history)
     bits = decoder.anchor_bits(xyz)
     assert torch.equal(decoder.anchor_bits(xyz.clone()), bits)  # same bytes: the kept bits
-    xyz[:, 0] = torch.where(xyz[:, 0] == 0, xyz[:, 0], xyz[:, 0] * 1.5)  # moved in place
+    xyz += 3.7 * CELL  # moved in place, across cells
     assert torch.equal(decoder.anchor_bits(xyz), fresh(xyz))
     assert not torch.equal(decoder.anchor_bits(xyz), bits)
-    zero = torch.zeros(4, 3)
-    negative_zero = -zero  # equal as numbers, other bytes: other hash words
-    assert torch.equal(decoder.anchor_bits(zero), fresh(zero))
-    assert torch.equal(decoder.anchor_bits(negative_zero), fresh(negative_zero))
+
+
+def test_bits_survive_position_changes_smaller_than_the_cell():
+    feat, xyz = anchors()
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
+    bits, mark = decoder.anchor_bits(xyz), marked(decoder, feat, xyz)
+    lo, hi = xyz.min(0).values, xyz.max(0).values
+    step = (hi - lo) / (2**10 - 1)
+    quantized = torch.round((xyz - lo) / step) * step + lo  # what ``quantize:10`` does to positions
+    half = xyz.half().float()
+    for moved in (quantized, half):
+        kept = float((decoder.anchor_bits(moved) == bits).float().mean())
+        assert kept > 0.95  # a change of at most step/2 = 0.005 crosses a face of a 0.5 cell rarely
+        assert verify_message(decoder, mark, moved).present
+    # a move of a whole cell re-deals the anchors: the marked features then read as chance
+    assert float((decoder.anchor_bits(xyz + CELL) == bits).float().mean()) < 0.1
+    with pytest.raises(ValueError, match="cell"):
+        KeyedBitDecoder(32, MESSAGE, new_seed(), 0.0)
 
 
 def test_projection_moves_only_the_features_that_disagree_and_only_along_their_bit():
     feat, xyz = anchors()
-    decoder = KeyedBitDecoder(32, MESSAGE, new_seed())
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
     moved = decoder.project(feat, xyz, margin=1.0)
     logits, bit = decoder(moved, xyz)
     sign = torch.tensor([1.0 if c == "1" else -1.0 for c in MESSAGE])[bit]
@@ -95,7 +110,7 @@ def test_projection_moves_only_the_features_that_disagree_and_only_along_their_b
 
 def test_marked_features_are_present_and_unmarked_ones_are_fair_coins():
     feat, xyz = anchors()
-    decoder = KeyedBitDecoder(32, MESSAGE, new_seed())
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
     result = verify_message(decoder, marked(decoder, feat, xyz), xyz)
     assert result.present and result.matched == 48 and result.p_value == 2.0**-48
     assert result.anchor_agreement == 1.0
@@ -103,19 +118,19 @@ def test_marked_features_are_present_and_unmarked_ones_are_fair_coins():
     # 3.46; with 300 keys the sample mean lies within 0.6 of 24 unless something is biased.
     matches, ps = [], []
     for _ in range(300):
-        r = verify_message(KeyedBitDecoder(32, MESSAGE, new_seed()), feat, xyz)
+        r = verify_message(KeyedBitDecoder(32, MESSAGE, new_seed(), CELL), feat, xyz)
         assert not r.present
         matches.append(r.matched)
         ps.append(r.p_value)
     assert abs(sum(matches) / len(matches) - 24) < 0.6
     assert sum(p <= 0.05 for p in ps) <= 0.05 * 300 + 3 * math.sqrt(0.05 * 0.95 * 300)  # the p-value is valid
     # A container of another key (marked features) is unmarked for this key.
-    assert not verify_message(KeyedBitDecoder(32, MESSAGE, new_seed()), marked(decoder, feat, xyz), xyz).present
+    assert not verify_message(KeyedBitDecoder(32, MESSAGE, new_seed(), CELL), marked(decoder, feat, xyz), xyz).present
 
 
 def test_bits_without_voters_count_against_the_release():
     feat, xyz = anchors(n=10)
-    decoder = KeyedBitDecoder(32, MESSAGE, new_seed())
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
     result = verify_message(decoder, marked(decoder, feat, xyz), xyz)
     assert result.matched <= 10 and not result.present
 
@@ -179,7 +194,7 @@ def test_study_counts_each_kind_of_test():
         g = torch.Generator().manual_seed(seed)
         anchors = AnchorModel.from_points(torch.rand(3000, 3, generator=g) * 10, voxel_size=0.01)
         feat = torch.randn(anchors.num_anchors, 32, generator=g) * 0.3
-        decoder = KeyedBitDecoder(32, MESSAGE, new_seed()) if key else None
+        decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL) if key else None
         with torch.no_grad():
             anchors.feat.copy_(marked(decoder, feat, anchors.xyz) if key else feat)
         return StudyModel(name, "synthetic", seed, anchors, 0.0, decoder)

@@ -212,6 +212,11 @@ def _interrupt_between_steps():
             signal.signal(s, h)
 
 
+# A step that reports one of these is always logged: densification changed the model (Scaffold-GS's
+# grown anchors, 3DGS's clones and opacity resets), or the update was skipped.
+CHANGE_KEYS = ("grown", "cloned", "opacity_reset", "nonfinite_grads")
+
+
 def train_loop(trainer, run: RunFolder, args, finish, passphrase: str | None = None) -> int:
     """Step the trainer to its iteration count with a progress bar, logs and checkpoints."""
     from tqdm import tqdm
@@ -229,9 +234,10 @@ def train_loop(trainer, run: RunFolder, args, finish, passphrase: str | None = N
                 bar.close()
                 return _interrupted(trainer, run, passphrase)
             bar.update(1)
-            bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", anchors=stats["anchors"])
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}",
+                            **{k: stats[k] for k in ("anchors", "gaussians") if k in stats})
             step = trainer.step_count
-            if step % args.log_every == 0 or step == total or "grown" in stats or "nonfinite_grads" in stats:
+            if step % args.log_every == 0 or step == total or any(k in stats for k in CHANGE_KEYS):
                 run.append_log({"step": step, "seconds": round(trainer.train_seconds, 2), **stats})
             if step % args.checkpoint_every == 0:
                 trainer.save_checkpoint(run.checkpoint, passphrase)
@@ -253,7 +259,7 @@ def _interrupted(trainer, run: RunFolder, passphrase: str | None) -> int:
 
 def print_metrics(metrics: dict) -> None:
     keys = ("psnr", "ssim", "lpips", "fps", "size_mb", "psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden",
-            "bit_accuracy", "fps_public", "fps_hidden", "size_mb_public", "anchors", "train_seconds")
+            "bit_accuracy", "fps_public", "fps_hidden", "size_mb_public", "anchors", "gaussians", "train_seconds")
     print("  ".join(f"{k}={metrics[k]:.4g}" if isinstance(metrics.get(k), float) else f"{k}={metrics.get(k)}"
                     for k in keys if k in metrics))
     if metrics.get("lpips_note"):

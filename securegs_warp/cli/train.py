@@ -1,11 +1,12 @@
-"""``securegs train`` (plain Scaffold-GS) and the commands on a saved model: ``render``, ``eval``,
-``export``. The last three load the model and the scene's cameras only: no trainer, no optimizer."""
+"""``securegs train`` (plain Scaffold-GS, or plain 3DGS with ``--model 3dgs``) and the commands on a
+saved model: ``render``, ``eval``, ``export``. The last three load the model and the scene's cameras only: no trainer, no optimizer."""
 from __future__ import annotations
 
 import torch
 
 from ..config import RunConfig, from_dict
 from ..evaluation import evaluate_views
+from ..gaussians import GaussianModel
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, folder_size_mb, png_name, save_png
 from ..scaffold_model import ScaffoldModel
@@ -26,10 +27,15 @@ from .common import (
 )
 
 TRAIN_DEFAULTS = {"train.iterations": 800}
+MODEL_FLAGS = (
+    ("--model", "train.model", "what to train: scaffold (Scaffold-GS) or 3dgs (plain 3DGS, saved as a standard 3DGS "
+                               "PLY)"),
+    ("--sh-degree", "train.gaussians.sh_degree", "3dgs: largest spherical-harmonic degree of the colours"),
+)
 
 
 def cmd_train(args) -> int:
-    from ..train import ScaffoldTrainer
+    from ..train import GaussianTrainer, ScaffoldTrainer
 
     check_run_arguments(args)
     device = resolve_device(args.device)
@@ -37,12 +43,13 @@ def cmd_train(args) -> int:
     quiet_warp()
     run = RunFolder(args.out)
     resume = prepare_run(run, config, args)
-    trainer = ScaffoldTrainer(config.scene.load(), config.train, device=device)
+    trainer_class = GaussianTrainer if config.train.model == "3dgs" else ScaffoldTrainer
+    trainer = trainer_class(config.scene.load(), config.train, device=device)
 
     def finish():
         trainer.model.save(run.model)
         metrics = evaluate_model(trainer.model, trainer.scene, config, run, device)
-        metrics.update(anchors=trainer.model.anchors.num_anchors, train_seconds=round(trainer.train_seconds, 2))
+        metrics.update(**trainer.size_stats(), train_seconds=round(trainer.train_seconds, 2))
         run.write_json(run.metrics, metrics)
         print_metrics(metrics)
 
@@ -53,7 +60,7 @@ def background_of(scene, device) -> torch.Tensor | None:
     return None if scene.background is None else torch.tensor(scene.background, dtype=torch.float32, device=device)
 
 
-def evaluate_model(model: ScaffoldModel, scene, config: RunConfig, run: RunFolder, device) -> dict:
+def evaluate_model(model: ScaffoldModel | GaussianModel, scene, config: RunConfig, run: RunFolder, device) -> dict:
     """Held-out metrics and FPS of the public render; writes the held-out renders as PNGs."""
     background = background_of(scene, device)
 
@@ -67,14 +74,15 @@ def evaluate_model(model: ScaffoldModel, scene, config: RunConfig, run: RunFolde
     return {**metrics, "size_mb": round(folder_size_mb(run.model), 3), "device": str(device)}
 
 
-def load_run(path, device) -> tuple[ScaffoldModel, RunConfig, RunFolder]:
+def load_run(path, device) -> tuple[ScaffoldModel | GaussianModel, RunConfig, RunFolder]:
     """The saved public model of a finished run (``train`` or ``hide``), its config and folder."""
     quiet_warp()
     run = RunFolder(path)
     config = from_dict(RunConfig, run.read_config())
     if not run.model.is_dir():
         raise CommandError(f"{run.path} has no saved model yet (the run has not finished: --resume it)")
-    return ScaffoldModel.load(run.model, device=device), config, run
+    model_class = GaussianModel if config.train.model == "3dgs" else ScaffoldModel
+    return model_class.load(run.model, device=device), config, run
 
 
 def cmd_render(args) -> int:
@@ -104,11 +112,15 @@ def cmd_eval(args) -> int:
 def cmd_export(args) -> int:
     device = resolve_device(args.device)
     model, config, run = load_run(args.run, device)
+    out = args.out or str(run.path / "export_3dgs.ply")
+    if isinstance(model, GaussianModel):  # already 3DGS: its own file, with every SH coefficient
+        model.save_ply(out)
+        print(f"wrote {model.num_gaussians} Gaussians (SH degree {model.sh_degree}) to {out}")
+        return 0
     cams = config.scene.load().train
     if not 0 <= args.view < len(cams):
         raise CommandError(f"--view must be in [0, {len(cams)})")
     g = model.gaussians(cams[args.view], camera_index=args.view)
-    out = args.out or str(run.path / "export_3dgs.ply")
     export_3dgs_ply(out, g["means"], g["quats"], g["scales"], g["opacities"], g["colors"])
     print(f"wrote {g['means'].shape[0]} Gaussians of all {model.anchors.num_anchors} anchors (decoded with the view "
           f"directions of training view {cams[args.view].name}) to {out}")
@@ -116,8 +128,8 @@ def cmd_export(args) -> int:
 
 
 def add_parsers(sub) -> None:
-    p = sub.add_parser("train", help="train a Scaffold-GS model")
-    add_config_flags(p, SCENE_FLAGS + TRAIN_FLAGS + HEAD_FLAGS, TRAIN_DEFAULTS)
+    p = sub.add_parser("train", help="train a Scaffold-GS model (or plain 3DGS with --model 3dgs)")
+    add_config_flags(p, SCENE_FLAGS + TRAIN_FLAGS + MODEL_FLAGS + HEAD_FLAGS, TRAIN_DEFAULTS)
     add_run_arguments(p, default_out="runs/scaffold")
     p.set_defaults(func=cmd_train)
 

@@ -6,6 +6,9 @@ A 3DGS PLY holds one ``vertex`` per Gaussian with the float32 properties, in thi
 opacity as a logit, scales as logs, the rotation as a unit quaternion w first, and the colour as
 the degree-0 spherical-harmonic coefficient ``f_dc = (colour - 0.5) / C0`` with ``C0 = 0.28209479``
 (viewers compute ``colour = 0.5 + C0 * f_dc``). Normals are written as zeros, as 3DGS does.
+A trained 3DGS model adds its higher spherical-harmonic coefficients as ``f_rest_*`` between
+``f_dc_*`` and ``opacity`` (:func:`write_gaussians_ply`), and a feature field (GS-Hider) has C
+``f_dc_*`` columns instead of 3.
 """
 
 from __future__ import annotations
@@ -22,11 +25,10 @@ from .atomic import atomic_write
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical harmonic, 1 / (2 sqrt(pi))."""
 
-GS_PLY_PROPERTIES = (
-    ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
-    + [f"scale_{i}" for i in range(3)]
-    + [f"rot_{i}" for i in range(4)]
-)
+GS_PLY_PROPERTIES = [
+    "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+    "rot_0", "rot_1", "rot_2", "rot_3"]
+"""The properties of a degree-0 RGB file (``gaussians_ply_properties(3, 0)``)."""
 
 # Opacities are clamped to [eps, 1 - eps] before the logit: a Gaussian of opacity exactly 0 or 1
 # would otherwise be written as -inf / +inf, which viewers do not survive. float32 represents
@@ -115,22 +117,80 @@ def export_3dgs_ply(
         if tuple(tensor.shape) != shape:
             raise ValueError(f"{name} must have shape {list(shape)}, got {list(tensor.shape)}")
     with torch.no_grad():
-        means, quats, scales, opacities, colors = (
-            t.detach().to("cpu", torch.float64) for t in (means, quats, scales, opacities, colors)
-        )
-        opacity = opacities.clamp(_OPACITY_EPS, 1.0 - _OPACITY_EPS)
-        values = torch.cat(
-            [
-                means,
-                torch.zeros_like(means),
-                (colors - 0.5) / SH_C0,
-                torch.log(opacity / (1.0 - opacity))[:, None],
-                torch.log(scales.clamp_min(_MIN_SCALE)),
-                torch.nn.functional.normalize(quats, dim=1),
-            ],
-            dim=1,
-        )
-    write_vertex_ply(path, GS_PLY_PROPERTIES, values.numpy())
+        opacity = opacities.detach().to("cpu", torch.float64).clamp(_OPACITY_EPS, 1.0 - _OPACITY_EPS)
+        write_gaussians_ply(path, means, quats, torch.log(scales.detach().double().clamp_min(_MIN_SCALE)),
+                            torch.log(opacity / (1.0 - opacity)), (colors.detach().double() - 0.5) / SH_C0)
+
+
+def gaussians_ply_properties(channels: int = 3, rest: int = 0) -> list[str]:
+    """The vertex properties of a Gaussians PLY with ``channels`` f_dc columns and ``rest``
+    higher-order coefficients per channel (3DGS at degree 3: channels 3, rest 15)."""
+    return (["x", "y", "z", "nx", "ny", "nz"] + [f"f_dc_{i}" for i in range(channels)]
+            + [f"f_rest_{i}" for i in range(channels * rest)] + ["opacity"]
+            + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+
+
+def write_gaussians_ply(
+    path: str | os.PathLike,
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    log_scales: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    features_dc: torch.Tensor,
+    features_rest: torch.Tensor | None = None,
+) -> None:
+    """Write Gaussians in their stored parametrisation as a 3DGS PLY, atomically.
+
+    Args:
+        means: [M, 3]. quats: [M, 4] w first (normalised here). log_scales: [M, 3].
+        opacity_logits: [M]. features_dc: [M, C] (3DGS: the degree-0 SH coefficient of RGB).
+        features_rest: [M, R, C] higher-order coefficients (None or R = 0: none), written
+            channel-major (``f_rest_{c·R + r}``) as 3DGS writes its transposed ``features_rest``.
+    """
+    m = means.shape[0]
+    if features_dc.ndim != 2 or features_dc.shape[1] < 1:
+        raise ValueError(f"features_dc must be [M, C] with C >= 1, got {list(features_dc.shape)}")
+    c = features_dc.shape[1]
+    rest = features_dc.new_zeros(m, 0, c) if features_rest is None else features_rest
+    n_rest = rest.shape[1] if rest.ndim == 3 else -1
+    expected = {"means": (means, (m, 3)), "quats": (quats, (m, 4)), "log_scales": (log_scales, (m, 3)),
+                "opacity_logits": (opacity_logits, (m,)), "features_dc": (features_dc, (m, c)),
+                "features_rest": (rest, (m, n_rest, c))}
+    for name, (tensor, shape) in expected.items():
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"{name} must have shape {list(shape)}, got {list(tensor.shape)}")
+    with torch.no_grad():
+        parts = [t.detach().to("cpu", torch.float64) for t in (means, quats, log_scales, opacity_logits, features_dc, rest)]
+        means, quats, log_scales, logits, dc, rest = parts
+        values = torch.cat([means, torch.zeros_like(means), dc, rest.transpose(1, 2).reshape(m, -1), logits[:, None],
+                            log_scales, torch.nn.functional.normalize(quats, dim=1)], dim=1)
+    write_vertex_ply(path, gaussians_ply_properties(c, rest.shape[1]), values.numpy())
+
+
+def read_gaussians_ply(path: str | os.PathLike, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+    """Read a Gaussians PLY in its stored parametrisation (inverse of :func:`write_gaussians_ply`).
+
+    The number of channels C and of higher-order coefficients R come from the ``f_dc_*`` and
+    ``f_rest_*`` columns present (``f_rest`` must be a multiple of C).
+
+    Returns:
+        dict of float32 tensors on ``device``: ``means`` [M, 3], ``quats`` [M, 4] (as stored),
+        ``log_scales`` [M, 3], ``opacity_logits`` [M], ``features_dc`` [M, C], ``features_rest``
+        [M, R, C].
+    """
+    vertex = read_vertex_ply(path)
+    present = {p.name for p in vertex.properties}
+    c = sum(1 for i in range(len(present)) if f"f_dc_{i}" in present)
+    n_rest = sum(1 for i in range(len(present)) if f"f_rest_{i}" in present)
+    if c == 0:
+        raise PlyFormatError(path, "vertex property 'f_dc_0' is missing")
+    if n_rest % c:
+        raise PlyFormatError(path, f"{n_rest} f_rest_* properties are not a multiple of the {c} colour channels")
+    names = [n for n in gaussians_ply_properties(c, n_rest // c) if n not in ("nx", "ny", "nz")]
+    values = torch.from_numpy(vertex_columns(path, vertex, names)).to(device)
+    means, dc, rest, logits, log_scales, quats = values.split([3, c, n_rest, 1, 3, 4], dim=1)
+    return {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": logits[:, 0],
+            "features_dc": dc, "features_rest": rest.reshape(rest.shape[0], c, n_rest // c).transpose(1, 2).contiguous()}
 
 
 def read_3dgs_ply(path: str | os.PathLike, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
@@ -144,14 +204,13 @@ def read_3dgs_ply(path: str | os.PathLike, device: torch.device | str = "cpu") -
         stored), ``scales`` [M, 3] (linear), ``opacities`` [M] (sigmoid of the stored logit),
         ``colors`` [M, 3] (``0.5 + C0 * f_dc``, not clamped).
     """
-    vertex = read_vertex_ply(path)
-    names = [n for n in GS_PLY_PROPERTIES if n not in ("nx", "ny", "nz")]
-    values = torch.from_numpy(vertex_columns(path, vertex, names)).to(device)
-    means, f_dc, opacity_logit, log_scales, quats = values.split([3, 3, 1, 3, 4], dim=1)
+    stored = read_gaussians_ply(path, device)
+    if stored["features_dc"].shape[1] != 3:
+        raise PlyFormatError(path, f"holds {stored['features_dc'].shape[1]} colour channels (f_dc_*), not RGB's 3")
     return {
-        "means": means,
-        "quats": quats,
-        "scales": torch.exp(log_scales),
-        "opacities": torch.sigmoid(opacity_logit[:, 0]),
-        "colors": 0.5 + SH_C0 * f_dc,
+        "means": stored["means"],
+        "quats": stored["quats"],
+        "scales": torch.exp(stored["log_scales"]),
+        "opacities": torch.sigmoid(stored["opacity_logits"]),
+        "colors": 0.5 + SH_C0 * stored["features_dc"],
     }

@@ -118,6 +118,18 @@ def swap_optimizer_param(
             return
 
 
+def replace_parameter(module: nn.Module, name: str, value: torch.Tensor,
+                      optimizer: torch.optim.Optimizer | None,
+                      update_moment: Callable[[torch.Tensor], torch.Tensor]) -> None:
+    """Swap ``module``'s parameter ``name`` for a new one holding ``value`` (its row count may
+    differ), in the module and in ``optimizer`` (moments mapped through ``update_moment``)."""
+    old = getattr(module, name)
+    new = nn.Parameter(value.contiguous(), requires_grad=old.requires_grad)
+    setattr(module, name, new)
+    if optimizer is not None:
+        swap_optimizer_param(optimizer, old, new, update_moment)
+
+
 def anchor_param_groups(model: "AnchorModel", lr: Mapping[str, float]) -> list[dict]:
     """One Adam param group per anchor parameter, named as in :data:`ANCHOR_PARAM_NAMES`.
 
@@ -290,12 +302,7 @@ class AnchorModel(AnchorSizes, nn.Module):
                               lambda moment, extra=extra: torch.cat([moment, torch.zeros_like(extra)]))
 
     def _replace(self, name, value, optimizer, update_moment) -> None:
-        """Swap parameter ``name`` for a new one holding ``value``, in the module and the optimizer."""
-        old = getattr(self, name)
-        new = nn.Parameter(value.contiguous(), requires_grad=old.requires_grad)
-        setattr(self, name, new)
-        if optimizer is not None:
-            swap_optimizer_param(optimizer, old, new, update_moment)
+        replace_parameter(self, name, value, optimizer, update_moment)
 
 
 def _check_rows(n: int, d: int, k: int, **tensors: torch.Tensor) -> None:

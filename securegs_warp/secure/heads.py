@@ -22,7 +22,7 @@ class PrivateHeads(nn.Module):
         (the paper's hybrid decoupled Gaussian encryption, HDGER). ``None`` in the "w/o HDGER"
         ablation, where the anchors carry explicit hidden offsets instead
         (``AnchorModel.hidden_offsets``; measured by the training scripts, not saved in a release).
-    bits (F_b†): a ``KeyedBitDecoder`` derived from ``message`` and ``bit_seed``, never trained —
+    bits (F_b†): a ``KeyedBitDecoder`` derived from ``message``, ``bit_seed`` and ``bit_cell``, never trained —
         per-anchor bit logits; the message is the average over anchors (each anchor votes). Training
         projects the features onto the message after every step; a model trained without this key
         reads as fair coin flips (keyed_bits.py), which is what ``verify`` tests. None without a
@@ -46,6 +46,7 @@ class PrivateHeads(nn.Module):
     """
 
     def __init__(self, public: ScaffoldHeads, *, message: str | None = None, bit_seed: str | None = None,
+                 bit_cell: float | None = None,
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0):
         super().__init__()
@@ -65,13 +66,14 @@ class PrivateHeads(nn.Module):
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
         self.bits = None
-        self.set_message(message, bit_seed)
+        self.set_message(message, bit_seed, bit_cell)
 
-    def set_message(self, message: str | None, bit_seed: str | None) -> None:
-        """(Re)derive the bit decoder (on the CPU) from the message (L characters 0/1) and its seed (hex)."""
-        if (message is None) != (bit_seed is None):
-            raise ValueError("a bit payload needs both its message and its decoder's seed")
-        self.bits = None if message is None else KeyedBitDecoder(self.feat_dim, message, bit_seed)
+    def set_message(self, message: str | None, bit_seed: str | None, bit_cell: float | None) -> None:
+        """(Re)derive the bit decoder (on the CPU) from the message (L characters 0/1), its seed (hex)
+        and its cell edge (scene units)."""
+        if not (message is None) == (bit_seed is None) == (bit_cell is None):
+            raise ValueError("a bit payload needs its message, its decoder's seed and its cell edge (bit_cell)")
+        self.bits = None if message is None else KeyedBitDecoder(self.feat_dim, message, bit_seed, bit_cell)
 
     @property
     def n_bits(self) -> int:
@@ -124,7 +126,8 @@ class PrivateHeads(nn.Module):
 
     def describe(self) -> dict:
         """The constructor arguments, for the key's metadata."""
-        bits = {} if self.bits is None else {"message": self.bits.message, "bit_seed": self.bits.seed}
+        bits = {} if self.bits is None else {"message": self.bits.message, "bit_seed": self.bits.seed,
+                                           "bit_cell": self.bits.cell}
         return {**bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
                 "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
                 "width": self.width, "serving": self.serving}

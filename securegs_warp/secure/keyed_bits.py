@@ -31,6 +31,11 @@ _DOMAIN = b"securegs-warp keyed bit decoder v1"
 # Logits are LOGIT_SCALE times the projection of a feature on a unit-length direction: a margin of
 # 1 (SecureConfig.bit_margin) puts a feature 0.1 past the decision plane.
 LOGIT_SCALE = 10.0
+# The edge of the keyed grid whose cells deal the anchors among the bits, in base voxels of the
+# anchor grid: an anchor keeps its bit while its position moves by less than its distance to a cell
+# face, so a coarser grid survives larger position changes (quantisation, float16, position noise),
+# and a finer one gives each bit more independent cells to vote.
+BIT_CELL_VOXELS = 4.0
 
 
 def new_seed() -> str:
@@ -61,8 +66,10 @@ def keyed_uniform(seed: str, label: str, shape: tuple[int, ...]) -> torch.Tensor
 class KeyedBitDecoder(nn.Module):
     """Per-anchor bit logits from anchor features, derived from ``seed`` and ``message``.
 
-    Each anchor carries one bit of the message, chosen by a keyed hash of its position's float32
-    bytes (positions are never trained, so pruning or saving leaves the survivors' bits unchanged);
+    Each anchor carries one bit of the message, chosen by a keyed hash of the cell that holds it in
+    a grid of edge ``cell`` shifted by a keyed offset (positions are never trained, so pruning or
+    saving leaves the survivors' bits unchanged, and so does moving a position by less than its
+    distance to a cell face: quantisation, a float16 round trip, small position noise);
     bit b has a direction w_b [d] (``keyed_uniform``, unit length on average) and the anchor's logit
     is LOGIT_SCALE · w_b · f. One bit per anchor because every bit an anchor carries confines its
     feature to a half-space that the public heads must live with. No bias: blank features (f = 0) give
@@ -71,15 +78,19 @@ class KeyedBitDecoder(nn.Module):
     flips. Held as non-persistent buffers: the key stores the seed and the message, not these.
     """
 
-    def __init__(self, feat_dim: int, message: str, seed: str):
+    def __init__(self, feat_dim: int, message: str, seed: str, cell: float):
         super().__init__()
         if not message or set(message) - {"0", "1"}:
             raise ValueError(f"the message must be a non-empty string of 0 and 1, got {message!r}")
-        self.seed, self.message, self.feat_dim = seed, message, feat_dim
+        if not (isinstance(cell, (int, float)) and math.isfinite(cell) and cell > 0):
+            raise ValueError(f"the bit cell must be a positive length, got {cell!r}")
+        self.seed, self.message, self.feat_dim, self.cell = seed, message, feat_dim, float(cell)
         directions = keyed_uniform(seed, f"directions:{message}", (len(message), feat_dim)) * 3.0**0.5
         self.register_buffer("directions", directions / feat_dim**0.5, persistent=False)
         self.register_buffer("target", torch.tensor([int(c) for c in message]), persistent=False)  # [L] 0/1
         self._mix = np.frombuffer(_stream(seed, f"anchors:{message}", 32), dtype="<u8") | np.uint64(1)
+        # in [0, cell)^3: where the cell faces lie is part of the key
+        self._offset = (keyed_uniform(seed, f"cell offset:{message}", (3,)).numpy().astype(np.float64) + 1) / 2 * self.cell
         self._last_bits = None  # (a copy of the float32 positions [N, 3] last hashed, their bits [N])
 
     @property
@@ -96,7 +107,8 @@ class KeyedBitDecoder(nn.Module):
         if (last is not None and xyz.dtype == torch.float32 and last[0].shape == xyz.shape
                 and last[0].device == xyz.device and torch.equal(last[0].view(torch.int32), xyz.detach().view(torch.int32))):
             return last[1]
-        words = np.ascontiguousarray(xyz.detach().to("cpu", torch.float32).numpy()).view("<u4").astype(np.uint64)
+        cells = np.floor((xyz.detach().to("cpu", torch.float64).numpy() + self._offset) / self.cell)
+        words = cells.astype(np.int64).view(np.uint64)
         with np.errstate(over="ignore"):  # arithmetic modulo 2^64 is the point
             h = (words[:, 0] * self._mix[0]) ^ (words[:, 1] * self._mix[1]) ^ (words[:, 2] * self._mix[2])
             h = (h ^ (h >> np.uint64(29))) * self._mix[3]

@@ -17,7 +17,7 @@ from ..data import Camera, SceneData
 from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
-from .keyed_bits import new_seed
+from .keyed_bits import BIT_CELL_VOXELS, new_seed
 from .model import SecureModel
 from .payload import PayloadSpec, build_payload, message_string
 from .robust import parse_robust, perturb, public_opacity
@@ -53,7 +53,8 @@ class SecureTrainer(ScaffoldTrainer):
 
     def _make_model(self, anchors, heads) -> SecureModel:
         options = self.secure.private_options()
-        private = PrivateHeads(heads, message=message_string(self.payload.bits), bit_seed=self.bit_seed,
+        bit_cell = BIT_CELL_VOXELS * anchors.voxel_size if self.payload.bits is not None else None
+        private = PrivateHeads(heads, message=message_string(self.payload.bits), bit_seed=self.bit_seed, bit_cell=bit_cell,
                                offsets=self.secure.hdger, hidden=self.payload.has_images,
                                **options).to(anchors.xyz.device)
         if options["frame"] == "box" and private.decoder is not None:
@@ -187,5 +188,6 @@ class SecureTrainer(ScaffoldTrainer):
         self.model.private.load_state_dict(state["private"])
         if self.payload.bits is not None:
             self.payload.bits, self.bit_seed = state["message"].to(self.device), state["bit_seed"]
-            self.model.private.set_message(message_string(self.payload.bits), self.bit_seed)
+            self.model.private.set_message(message_string(self.payload.bits), self.bit_seed,
+                                           self.model.private.bits.cell)
             self.model.private.to(self.device)

@@ -18,6 +18,15 @@ from ..model import AnchorModel, growth_candidates
 _REFERENCE_ITERATIONS = 30_000
 
 
+def ndc_grad_norms(info: dict) -> torch.Tensor:
+    """[M] norms of the loss gradient with respect to each Gaussian's projected mean, in NDC units
+    (3DGS and gsplat measure it so: d/d ndc = d/d pixel · (W/2, H/2)), from ``rasterize``'s info
+    after backward. The densification statistic of Scaffold-GS and of 3DGS."""
+    grad = info["means2d_grad"]
+    scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=grad.device)
+    return (grad * scale).norm(dim=1)
+
+
 @dataclasses.dataclass
 class ScaffoldStrategy:
     """Scaffold-GS's densification options. The schedule (``start_stat`` .. ``update_until``) is
@@ -88,9 +97,7 @@ class ScaffoldStrategy:
         rendered = info["radii"][:, 0] > 0
         kept = rows.clone()
         rows[kept] = rendered
-        # 3DGS measures the mean's gradient in NDC: d/d ndc = d/d pixel · (W/2, H/2).
-        scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=rows.device)
-        state[prefix + "grad_accum"][rows] += grad_scale * (info["means2d_grad"][rendered] * scale).norm(dim=1)
+        state[prefix + "grad_accum"][rows] += grad_scale * ndc_grad_norms(info)[rendered]
         state[prefix + "grad_denom"][rows] += 1
         return rows, rendered
 

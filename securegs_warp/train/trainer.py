@@ -1,30 +1,23 @@
-"""Scaffold-GS training: one class with ``step()``, ``evaluate()`` and checkpoints (Warp examples style).
+"""Scaffold-GS training: anchors + MLP heads, Adam with Scaffold-GS's learning rates and schedules,
+and its anchor densification, on the shared loop of ``ViewTrainer``.
 
-A step renders one training view through ``securegs_warp.rasterize``, takes the loss
-0.8·L1 + 0.2·(1 − SSIM) + 0.01·volume, backpropagates, lets the densification strategy look at the
-gradients, then steps Adam with Scaffold-GS's learning rates and schedules. A checkpoint holds
-everything a step changes (anchors, heads, Adam, strategy statistics, random state), written
-atomically, so an interrupted run resumes where it stopped.
+A step's loss is 0.8·L1 + 0.2·(1 − SSIM) + 0.01·volume.
 """
 from __future__ import annotations
 
-import io
-import time
-
 import torch
 
-from .. import evaluation
-from ..config import TrainConfig, first_difference, from_dict, to_dict
-from ..data import Camera, SceneData
-from ..keys import is_sealed, seal, unseal, write_private
+from ..config import TrainConfig
+from ..data import SceneData
 from ..model import ANCHOR_PARAM_NAMES, AnchorModel, anchor_param_groups
 from ..scaffold_model import ScaffoldModel, build_heads
 from ..strategies import ScaffoldStrategy
-from .losses import photometric_loss, psnr, volume_loss
+from .base import ViewTrainer
+from .losses import volume_loss
 from .schedules import exponential_lr
 
 
-class ScaffoldTrainer:
+class ScaffoldTrainer(ViewTrainer):
     """Trains a Scaffold-GS model on a ``SceneData``: composes a model, an Adam optimizer and a
     densification strategy.
 
@@ -33,31 +26,19 @@ class ScaffoldTrainer:
     strategy: the densification strategy to use as given; default Scaffold-GS's, scaled to the run.
     """
 
+    model_state_keys = ("model", "heads", "voxel_size")
+
     def __init__(self, scene: SceneData, config: TrainConfig, device: str | torch.device = "cpu",
                  strategy: ScaffoldStrategy | None = None):
-        if not scene.train:
-            raise ValueError(f"scene {scene.name!r} has no training views")
-        self.scene = scene
-        self.config = config
-        self.device = torch.device(device)
-        self.generator = torch.Generator().manual_seed(config.seed)
-        # The scene's own background (a NeRF-synthetic object on white, the synthetic sky): the
-        # rasterizer composites it only because the scene asks for it; black costs nothing.
-        self.background = None if scene.background is None else torch.tensor(
-            scene.background, dtype=torch.float32, device=self.device)
+        super().__init__(scene, config, device)
         torch.manual_seed(config.seed)  # MLP initialisation
         anchors = AnchorModel.from_points(scene.points, voxel_size=config.voxel_size,
                                           feat_dim=config.heads.feat_dim, n_offsets=config.heads.n_offsets,
                                           device=self.device)
         self.model = self._make_model(anchors, build_heads(config.heads, len(scene.train)).to(self.device))
-        self.spatial_scale = float(scene.cameras_extent)
         self.optimizer = self._make_optimizer()
         self.strategy = strategy or ScaffoldStrategy().scaled_to(config.iterations)
         self.strategy_state = self.strategy.initialize_state(self.model.anchors)
-        self.step_count = 0
-        self.train_seconds = 0.0  # wall time spent in step(), kept across resumes
-        self._targets = [torch.as_tensor(c.image, device=self.device) for c in scene.train]
-        self._order: list[int] = []
 
     def _make_model(self, anchors, heads) -> ScaffoldModel:
         return ScaffoldModel(anchors, heads)
@@ -93,9 +74,7 @@ class ScaffoldTrainer:
         })
         for name, module in self.head_groups().items():
             groups.append({"params": list(module.parameters()), "lr": self._mlp_schedule(name)[0], "name": name})
-        # On CUDA one fused kernel updates every tensor of every group (the foreach path launches
-        # several per group); the update is Adam's either way, up to float rounding.
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type == "cuda")
+        return self.adam(groups)
 
     def _update_learning_rates(self, step: int) -> None:
         c = self.config
@@ -107,132 +86,24 @@ class ScaffoldTrainer:
             elif name in self.head_groups():
                 group["lr"] = exponential_lr(*self._mlp_schedule(name), c.iterations, step)
 
-    def _next_view(self) -> int:
-        """Training views in a random order, each once per epoch (as 3DGS picks them). The view
-        stays at the end of the order until ``step`` completes."""
-        if not self._order:
-            self._order = torch.randperm(len(self.scene.train), generator=self.generator).tolist()
-        return self._order[-1]
-
-    # -- rendering ------------------------------------------------------------------------------
-
-    def render(self, cam: Camera, camera_index: int | None = None) -> dict:
-        """The public render of one view with this run's rasterizer options and background."""
-        return self.model.render(cam, self.config.raster, background=self.background, camera_index=camera_index)
-
     def image_loss(self, out: dict, target: torch.Tensor) -> torch.Tensor:
         """(1 − α)·L1 + α·(1 − SSIM) + β·volume for one render (the paper's ℓ_ori and ℓ_hid)."""
-        loss = photometric_loss(out["image"], target, self.config.ssim_weight)
-        return loss + self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
+        return super().image_loss(out, target) + self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
 
-    def step(self) -> dict:
-        """One training iteration. Returns {"loss", "psnr", "anchors", "grown", "pruned", ...}.
+    def densify(self, step: int, branches: dict) -> dict:
+        return self.strategy.step_post_backward(self.model.anchors, self.optimizer, self.strategy_state, step,
+                                                branches, generator=self.generator)
 
-        The step counter advances only once the step's work is done, so an interrupt in the middle
-        leaves the trainer at the last completed step.
-        """
-        t0 = time.perf_counter()
-        step = self.step_count + 1
-        self._update_learning_rates(step)
-        index = self._next_view()  # taken off the order only when the step completes
-        out = self.render(self.scene.train[index], camera_index=index)
-        target = self._targets[index]
-        branches = {"public": (out["gaussians"], out["info"])}
-        loss, extra = self.extra_losses(index, self.image_loss(out, target), branches, step)
-        loss.backward()
-        bad = nonfinite_gradient_counts(self.optimizer)
-        changed = {}
-        if bad:
-            # Skip the whole update, as mixed-precision training does on overflow: see
-            # nonfinite_gradient_counts for why zeroing the bad entries is not enough.
-            extra = {**extra, "nonfinite_grads": sum(bad.values()), "nonfinite_groups": sorted(bad)}
-        else:
-            if self.config.densify:
-                changed = self.strategy.step_post_backward(self.model.anchors, self.optimizer, self.strategy_state,
-                                                           step, branches, generator=self.generator)
-            self.optimizer.step()
-            self.after_update()
-        self.optimizer.zero_grad(set_to_none=True)
-        # Numbers that read the device (a host synchronisation each) are taken here, once the whole
-        # step is queued; extra_losses may hand them over as functions for that reason.
-        extra = {key: value() if callable(value) else value for key, value in extra.items()}
-        result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target),
-                  "anchors": self.model.anchors.num_anchors, **extra, **changed}
-        self._order.pop()
-        self.step_count = step
-        self.train_seconds += time.perf_counter() - t0
-        return result
-
-    def after_update(self) -> None:
-        """Hook after each optimizer step (the SecureGS trainer moves the anchor features onto the
-        message there). Scaffold-GS has nothing to do."""
-
-    def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
-        """Hook for the hidden branch: (total loss, numbers to report, each a value or a function
-        that gives it at the end of the step); a hidden render adds its (gaussians, info) to
-        ``branches`` under "hidden". Scaffold-GS has only the public loss."""
-        return loss, {}
-
-    @torch.no_grad()
-    def evaluate(self, cameras: list[Camera] | None = None, timing_repeats: int = 3, with_lpips: bool = False,
-                 on_render=None) -> dict:
-        """PSNR, SSIM (and LPIPS when asked and possible) on held-out views (the test split by
-        default), and rendering FPS. ``on_render(cam, image [H, W, 3])`` sees each render (to save it)."""
-        cameras = self.scene.test if cameras is None else cameras
-        metrics = evaluation.evaluate_views(self.render, cameras, self.device, timing_repeats=timing_repeats,
-                                            with_lpips=with_lpips, on_render=on_render)
-        return {**metrics, "anchors": self.model.anchors.num_anchors}
+    def size_stats(self) -> dict:
+        return {"anchors": self.model.anchors.num_anchors}
 
     # -- checkpoints ----------------------------------------------------------------------------
 
-    def config_sections(self) -> dict:
-        """Section name -> config object this trainer runs with (a checkpoint stores them)."""
-        return {"train": self.config}
+    def model_state(self) -> dict:
+        return {"voxel_size": float(self.model.anchors.voxel_size), "model": self.model.anchors.state_dict(),
+                "heads": self.model.heads.state_dict()}
 
-    def checkpoint_state(self) -> dict:
-        """Everything a step changes, as tensors and plain numbers (loadable with weights_only)."""
-        return {
-            "step": self.step_count,
-            "train_seconds": self.train_seconds,
-            "config": {name: to_dict(section) for name, section in self.config_sections().items()},
-            "voxel_size": float(self.model.anchors.voxel_size),
-            "model": self.model.anchors.state_dict(),
-            "heads": self.model.heads.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "strategy": self.strategy_state,
-            "generator": self.generator.get_state(),
-            "order": list(self._order),
-        }
-
-    def save_checkpoint(self, path, passphrase: str | None = None) -> None:
-        """Write ``checkpoint_state()`` atomically, owner-only; sealed like a key with ``passphrase``
-        (a SecureGS checkpoint holds the private heads, so a sealed run's checkpoints are sealed too)."""
-        buffer = io.BytesIO()
-        torch.save(self.checkpoint_state(), buffer)
-        data = buffer.getvalue()
-        write_private(path, seal(data, passphrase) if passphrase is not None else data)
-
-    def load_checkpoint(self, path, passphrase: str | None = None) -> None:
-        """Restore a checkpoint written by ``save_checkpoint``. Only tensors and plain numbers are
-        read (``weights_only``); a sealed one needs its passphrase. A damaged, foreign or unsafe file
-        raises ValueError naming it."""
-        try:
-            blob = open(path, "rb").read()
-        except OSError as e:
-            raise ValueError(f"{path}: cannot read the checkpoint ({e.strerror or e})") from None
-        if is_sealed(blob):
-            blob = unseal(path, blob, passphrase, what="checkpoint")
-        try:
-            state = torch.load(io.BytesIO(blob), map_location=self.device, weights_only=True)
-        except Exception as e:  # torch raises UnpicklingError, RuntimeError, EOFError, zip errors ...
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise ValueError(f"{path}: not a checkpoint this version can read safely ({first[:200]})") from None
-        if not isinstance(state, dict) or not {"step", "config", "model", "heads", "optimizer"} <= set(state):
-            raise ValueError(f"{path}: not a securegs checkpoint (missing entries)")
-        self.restore(state, path)
-
-    def restore(self, state: dict, path) -> None:
-        self._check_config(state.get("config"), path)
+    def restore_model(self, state: dict) -> None:
         model_state = state["model"]
         anchors = AnchorModel(**{name: model_state[name] for name in ANCHOR_PARAM_NAMES},
                               voxel_size=state["voxel_size"])
@@ -241,54 +112,3 @@ class ScaffoldTrainer:
         self.model.anchors = anchors
         self.model.heads.load_state_dict(state["heads"])
         self.optimizer = self._make_optimizer()
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.strategy_state = state["strategy"]
-        self.generator.set_state(state["generator"])
-        self._order = list(state["order"])
-        self.step_count = int(state["step"])
-        self.train_seconds = float(state["train_seconds"])
-
-    def _check_config(self, saved: dict | None, path) -> None:
-        """Refuse a checkpoint written with other options, naming the first field that differs."""
-        mine = self.config_sections()
-        if not isinstance(saved, dict) or set(saved) != set(mine):
-            raise ValueError(f"{path}: checkpoint was written with other training options (a different kind of "
-                             "run); resume with the run's own config")
-        for section, value in mine.items():
-            try:
-                other = from_dict(type(value), saved[section], section)
-            except ValueError as e:
-                raise ValueError(f"{path}: checkpoint was written with other training options ({e})") from None
-            field = first_difference(value, other, section)
-            if field is not None:
-                raise ValueError(f"{path}: checkpoint was written with other training options ({field} differs); "
-                                 "resume with the run's own config")
-
-
-@torch.no_grad()
-def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int]:
-    """Parameter group name -> number of inf/NaN gradient entries, for the groups that have any
-    (empty: every gradient is finite). One host sync: the finite case, every step's, costs one
-    fused reduction (the L1 norm of all gradients, which an inf or NaN entry makes non-finite); only
-    a non-finite norm, which huge finite entries can also give, counts entry by entry.
-
-    The trainer skips a step with any such entry: no optimizer step, and no densification step
-    either (neither its statistics nor, on an update step, growth and pruning, which wait for the
-    next update). Both ways of going on can damage the model:
-    - Applied, an inf or NaN reaches Adam, whose update of an anchor trained at learning rate 0
-      (its position, as in Scaffold-GS) is 0 · m/√v = NaN for good; the anchor drops out of every
-      view and is never pruned.
-    - Zeroing just those entries applies the rest of a gradient computed through an overflow, whose
-      finite entries may be huge as well; one huge gradient fills Adam's second moment, and the
-      entry then barely moves for thousands of steps. Mixed-precision training skips such steps for
-      the same reason.
-    """
-    named = [(group.get("name", f"group {i}"), [p.grad for p in group["params"] if p.grad is not None])
-             for i, group in enumerate(optimizer.param_groups)]
-    named = [(name, grads) for name, grads in named if grads]
-    if not named:
-        return {}
-    if bool(torch.isfinite(torch.nn.utils.get_total_norm([g for _, grads in named for g in grads], norm_type=1.0))):
-        return {}
-    totals = torch.stack([sum((~torch.isfinite(g)).sum() for g in grads) for _, grads in named]).tolist()
-    return {name: int(n) for (name, _), n in zip(named, totals) if n}

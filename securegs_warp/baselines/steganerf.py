@@ -1,0 +1,244 @@
+"""3DGS + StegaNeRF: a plain 3DGS scene fine-tuned so that its renders carry a hidden image, which a
+U-Net decoder recovers from the render of any view (Li et al., "StegaNeRF", CVPR 2023, moved from
+a Plenoxels grid to explicit Gaussians; the authors' code is chenxinli001/StegaNeRF).
+
+The release is the fine-tuned scene as a standard 3DGS PLY; the key is the decoder (with the
+classifier that guides it). StegaNeRF's fine-tuning, per step on one training view:
+
+- render the view with the scene being tuned (I) and with the scene as it was (I₀, fixed);
+- a classifier C tells renders that carry the image from the original ones (BCE, targets 1 / 0);
+- the decoder D sees each render with C's belief (detached) and must give the hidden image M from
+  I and black from I₀ (both MSE): so D does not paint M onto any picture it is shown;
+- the scene is held to I₀ (or the ground truth, ``rgb_target``) by an MSE;
+- before Adam steps the scene, the gradient of each SH coefficient is scaled down where that
+  coefficient carries much of the scene's appearance (adaptive gradient masking).
+
+``StegaNeRFConfig`` (config.py) holds every option, with the paper's choices and ours marked.
+"""
+from __future__ import annotations
+
+import copy
+import os
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .. import evaluation
+from ..config import StegaNeRFConfig
+from ..gaussians import GaussianModel
+from ..io.atomic import atomic_write
+from ..rasterizer import RasterOptions
+
+COLOR_PARAMS = ("features_dc", "features_rest")
+
+
+def _conv_block(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, padding=1), nn.ReLU(inplace=True),
+                         nn.Conv2d(c_out, c_out, 3, padding=1), nn.ReLU(inplace=True))
+
+
+class StegaDecoder(nn.Module):
+    """A three-level U-Net: a render [B, 3, H, W] and the classifier's belief [B] (as a constant
+    fourth input channel: StegaNeRF's classifier-guided recovery) -> an image [B, 3, H, W] in
+    [0, 1]. Any H, W (skips are resized to match). The authors use a VGG16 U-Net; this one has
+    ``width``, 2·width and 4·width channels so that it trains on a CPU."""
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        self.enc1, self.enc2, self.enc3 = _conv_block(4, width), _conv_block(width, 2 * width), _conv_block(
+            2 * width, 4 * width)
+        self.dec2, self.dec1 = _conv_block(6 * width, 2 * width), _conv_block(3 * width, width)
+        self.out = nn.Conv2d(width, 3, 1)
+
+    def forward(self, image: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+        b, _, h, w = image.shape
+        e1 = self.enc1(torch.cat([image, belief.view(b, 1, 1, 1).expand(b, 1, h, w)], dim=1))
+        e2 = self.enc2(F.avg_pool2d(e1, 2, ceil_mode=True))
+        e3 = self.enc3(F.avg_pool2d(e2, 2, ceil_mode=True))
+        d2 = self.dec2(torch.cat([F.interpolate(e3, size=e2.shape[-2:], mode="bilinear", align_corners=False), e2], 1))
+        d1 = self.dec1(torch.cat([F.interpolate(d2, size=(h, w), mode="bilinear", align_corners=False), e1], 1))
+        return torch.sigmoid(self.out(d1))
+
+
+class StegaClassifier(nn.Module):
+    """Whether a render [B, 3, H, W] carries the hidden image: [B] probabilities."""
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        self.features = nn.Sequential(
+            nn.Conv2d(3, width, 3, stride=2, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(width, 2 * width, 3, stride=2, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(2 * width, 4 * width, 3, stride=2, padding=1), nn.ReLU(inplace=True))
+        self.head = nn.Linear(4 * width, 1)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.head(self.features(image).mean(dim=(2, 3)))[:, 0])
+
+
+def sh_gradient_weights(model: GaussianModel, power: float) -> torch.Tensor:
+    """[(d + 1)²] weights of the SH basis functions' gradients: (e_min / e_i)^power, e_i the mean
+    |coefficient| of basis function i over Gaussians and channels (StegaNeRF's adaptive gradient
+    masking: the more of the scene's energy a coefficient holds, the less it moves)."""
+    coeffs = torch.cat([model.features_dc[:, None], model.features_rest], dim=1).detach()
+    energy = coeffs.abs().mean(dim=(0, 2)).clamp_min(1e-12)
+    return (energy.min() / energy) ** power
+
+
+def _chw(image: torch.Tensor) -> torch.Tensor:
+    return image.permute(2, 0, 1)[None]
+
+
+class StegaNeRF:
+    """Fine-tunes a copy of a trained ``GaussianModel`` to carry ``hidden`` [H, W, 3] (the views'
+    size) in its renders; ``decoder`` and ``classifier`` form the key.
+
+    scene: the ``SceneData`` the model was trained on (its training views are fine-tuned on, its
+    held-out views evaluated). raster, background: as the scene was trained with.
+    """
+
+    def __init__(self, model: GaussianModel, scene, hidden: torch.Tensor, config: StegaNeRFConfig,
+                 raster: RasterOptions | None = None, background: torch.Tensor | None = None, seed: int = 0):
+        self.config, self.scene, self.raster, self.background = config, scene, raster, background
+        self.device = model.device
+        cam = scene.train[0]
+        if tuple(hidden.shape) != (cam.height, cam.width, 3):
+            raise ValueError(f"hidden image must be [{cam.height}, {cam.width}, 3] (the views' size), "
+                             f"got {list(hidden.shape)}")
+        self.hidden = hidden.to(self.device)
+        self.original = model
+        self.model = copy.deepcopy(model)
+        tuned = COLOR_PARAMS if config.tune == "color" else None
+        for name, p in self.model.named_parameters():
+            p.requires_grad_(tuned is None or name in tuned)
+        torch.manual_seed(seed)  # decoder and classifier initialisation
+        self.decoder = StegaDecoder(config.decoder_width).to(self.device)
+        self.classifier = StegaClassifier(config.decoder_width).to(self.device)
+        lr = {name: config.color_lr for name in COLOR_PARAMS}
+        lr.update({"means": 0.0, "log_scales": 0.005, "quats": 0.001, "opacity_logits": 0.05})  # 3DGS's, tune=all
+        self.optimizer = torch.optim.Adam([{"params": [p], "lr": lr[name], "name": name}
+                                           for name, p in self.model.named_parameters() if p.requires_grad], eps=1e-15)
+        self.decoder_optimizer = torch.optim.Adam(
+            list(self.decoder.parameters()) + list(self.classifier.parameters()), lr=config.decoder_lr)
+        self.sh_weights = (sh_gradient_weights(self.model, config.masking_power)
+                           if config.gradient_masking and self.model.sh_degree is not None else None)
+        self.generator = torch.Generator().manual_seed(seed)
+        with torch.no_grad():
+            self._initial = [self.original.render(c, raster, background=background)["image"] for c in scene.train]
+        self._targets = [torch.as_tensor(c.image, device=self.device) for c in scene.train]
+        self.step_count = 0
+
+    def render(self, cam) -> dict:
+        """The public render of the fine-tuned scene."""
+        return self.model.render(cam, self.raster, background=self.background)
+
+    @torch.no_grad()
+    def reveal(self, image: torch.Tensor) -> torch.Tensor:
+        """The decoder's reading [H, W, 3] of a render [H, W, 3], guided by the classifier."""
+        x = _chw(image)
+        return self.decoder(x, self.classifier(x))[0].permute(1, 2, 0)
+
+    def render_hidden(self, cam) -> dict:
+        """The hidden image as the key holder recovers it from the public render of ``cam``."""
+        return {"image": self.reveal(self.render(cam)["image"])}
+
+    def step(self) -> dict:
+        """One fine-tuning step on a random training view; returns the loss terms."""
+        c = self.config
+        index = int(torch.randint(len(self.scene.train), (1,), generator=self.generator))
+        image = self.render(self.scene.train[index])["image"]
+        initial = self._initial[index]
+        target = initial if c.rgb_target == "init" else self._targets[index]
+        batch = torch.cat([_chw(image), _chw(initial)])
+        belief = self.classifier(batch)
+        decoded = self.decoder(batch, belief.detach())
+        terms = {
+            "rgb": F.mse_loss(image, target),
+            "hidden": F.mse_loss(decoded[0], _chw(self.hidden)[0]),
+            "clean": decoded[1].square().mean(),
+            "classifier": F.binary_cross_entropy(belief, torch.tensor([1.0, 0.0], device=self.device)),
+        }
+        loss = (c.rgb_weight * terms["rgb"] + c.hidden_weight * terms["hidden"] + c.clean_weight * terms["clean"]
+                + c.classifier_weight * terms["classifier"])
+        self.optimizer.zero_grad(set_to_none=True)
+        self.decoder_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.sh_weights is not None:
+            self.model.features_dc.grad *= self.sh_weights[0]
+            self.model.features_rest.grad *= self.sh_weights[1:, None]
+        self.optimizer.step()
+        self.decoder_optimizer.step()
+        self.step_count += 1
+        return {"loss": loss.item(), **{k: v.item() for k, v in terms.items()}}
+
+    def train(self, on_step=None) -> None:
+        """Run the configured fine-tuning steps; ``on_step(step, stats)`` sees each."""
+        while self.step_count < self.config.iterations:
+            stats = self.step()
+            if on_step is not None:
+                on_step(self.step_count, stats)
+
+    @torch.no_grad()
+    def evaluate(self, timing_repeats: int = 3) -> dict:
+        """On the held-out views: the cover (public render vs the photographs), the hidden image
+        (decoded from each view's render vs M), what the decoder reads from the original scene's
+        renders (``psnr_hidden_from_original``: a decoder that paints M onto anything would score
+        high there), and the FPS of the public render and of render + decoder."""
+        cams = self.scene.test or self.scene.train
+        cover = evaluation.evaluate_views(self.render, cams, self.device, timing_repeats=timing_repeats)
+        hidden = evaluation.image_metrics([(self.render_hidden(c)["image"], self.hidden) for c in cams], self.device,
+                                          with_lpips=False)
+        original = evaluation.image_metrics(
+            [(self.reveal(self.original.render(c, self.raster, background=self.background)["image"]), self.hidden)
+             for c in cams], self.device, with_lpips=False)
+        return {"psnr_public": cover["psnr"], "ssim_public": cover["ssim"], "fps_public": cover["fps"],
+                "psnr_hidden": hidden["psnr"], "ssim_hidden": hidden["ssim"],
+                "psnr_hidden_from_original": original["psnr"],
+                "fps_hidden": evaluation.render_fps(self.render_hidden, cams, self.device, timing_repeats)}
+
+    # -- release and key ------------------------------------------------------------------------
+
+    def save_release(self, path: str | os.PathLike) -> None:
+        """The fine-tuned scene as a standard 3DGS PLY."""
+        self.model.save_ply(path)
+
+    def key_tensors(self) -> dict[str, torch.Tensor]:
+        return {**{f"decoder.{k}": v for k, v in self.decoder.state_dict().items()},
+                **{f"classifier.{k}": v for k, v in self.classifier.state_dict().items()}}
+
+    def save_key(self, path: str | os.PathLike) -> None:
+        """The decoder and classifier as a safetensors file (tensors only: loading runs no code)."""
+        from safetensors.torch import save
+
+        data = save({k: v.detach().cpu().contiguous() for k, v in self.key_tensors().items()},
+                    metadata={"method": "3dgs+steganerf", "decoder_width": str(self.config.decoder_width)})
+        atomic_write(path, lambda f: f.write(data))
+
+    def load_key(self, path: str | os.PathLike) -> None:
+        """Read a key written by :meth:`save_key` into the decoder and classifier; ValueError naming
+        the file when it is not one (or of another width)."""
+        from safetensors import SafetensorError
+        from safetensors.torch import load
+
+        try:
+            tensors = load(open(path, "rb").read())
+        except (OSError, SafetensorError) as e:
+            raise ValueError(f"{path}: not a StegaNeRF key ({e})") from None
+        for prefix, module in (("decoder.", self.decoder), ("classifier.", self.classifier)):
+            part = {k[len(prefix):]: v.to(self.device) for k, v in tensors.items() if k.startswith(prefix)}
+            try:
+                module.load_state_dict(part)
+            except RuntimeError as e:
+                raise ValueError(f"{path}: not a key for this decoder ({str(e).splitlines()[0]})") from None
+
+
+def hidden_image_for(scene, image: str = "builtin") -> np.ndarray:
+    """The image to hide, at the views' size [H, W, 3]: ``builtin`` (the payload module's emblem,
+    what SecureGS's ``image`` payload hides by default) or an image file."""
+    from ..data.cameras import read_image, resize_image
+    from ..secure.payload import builtin_emblem
+
+    cam = scene.train[0]
+    raw = builtin_emblem(cam.height, cam.width) if image == "builtin" else read_image(image)[0]
+    return resize_image(raw, (cam.width, cam.height)).astype(np.float32)
