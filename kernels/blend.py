@@ -63,6 +63,20 @@ def warp_leader() -> bool:
     ...
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    for (int offset = 16; offset > 0; offset >>= 1) {
+        int other = __shfl_xor_sync(0xffffffff, x, offset);
+        x = other > x ? other : x;
+    }
+#endif
+    return x;
+""")
+def warp_max(x: int) -> int:
+    """Largest value over the 32 lanes of a CUDA warp; on the CPU a thread is its own warp."""
+    ...
+
+
 # Gradient vector layout per Gaussian: [d mean2d (2), d conic (3), d opacity (1), d colour (C), d depth].
 _XY, _CONIC, _OPACITY, _COLOR = 0, 2, 5, 6
 
@@ -87,7 +101,7 @@ def batch_size(channels: int, block: int, with_depth: bool, color_storage: str) 
 
 @functools.lru_cache(maxsize=None)
 def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
-                  color_storage: str, fast_math: bool):
+                  color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 
@@ -97,6 +111,13 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     ``color_storage``: element type of the ``colors`` [N, C] table the kernels read ("float32" or
     "float16", a key of ``COLOR_STORAGES``); the colour gradient ``v_colors`` is float32 either way.
     ``fast_math``: compile with Warp's ``fast_math`` module option (see ``projection_kernel``).
+    ``warp_walk``: in the backward, each warp walks a batch only from the last Gaussian one of its
+    own 32 pixels used (gsplat's bound), instead of from the block's: the batches are still gathered
+    for the whole block, but a warp whose pixels stopped early skips their tail without evaluating
+    it. Same gradients; only the work skipped differs (a CPU thread is its own warp).
+    ``max_registers``: registers per thread the CUDA backward may use (``__maxnreg__``; 0: the
+    compiler's choice). Fewer registers let more blocks share a multiprocessor, at the risk of
+    spilling to local memory; the CPU ignores it.
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
@@ -107,6 +128,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     COOP = cooperative
     DEPTH = 1 if with_depth else 0
     NG = _COLOR + C + DEPTH
+    WARP_WALK = warp_walk
     ColorVec = wp.types.vector(length=C, dtype=wp.float32)
     GradVec = wp.types.vector(length=NG, dtype=wp.float32)
 
@@ -268,6 +290,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
 
         # Walk from the last Gaussian any pixel of the block used, back to the tile's start.
         hi = wp.tile_extract(wp.tile_max(wp.tile(last)), 0) + 1
+        warp_hi = hi
+        if wp.static(WARP_WALK):
+            warp_hi = warp_max(last) + 1
         T = t_final
         buf = ColorVec()
         buf_depth = float(0.0)
@@ -284,8 +309,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
                 if wp.static(DEPTH == 1):
                     dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-            for jj in range(count):
-                j = count - 1 - jj
+            # Entries b0 .. b0 + n_walk - 1 of this batch: none past the warp's last (may be none).
+            n_walk = wp.min(count, warp_hi - b0)
+            for jj in range(n_walk):
+                j = n_walk - 1 - jj
                 g = GradVec()
                 touched = False
                 if wp.static(COOP):
@@ -351,9 +378,11 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             wp.atomic_add(v_depths, gid, g[_COLOR + C])
 
     tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
-           f"_{color_storage}{'_fast' if fast_math else ''}")
+           f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}")
+    backward_tag = tag + (f"_r{max_registers}" if max_registers else "")
     forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
-    backward.__name__ = backward.__qualname__ = f"blend_backward_{tag}"
+    backward.__name__ = backward.__qualname__ = f"blend_backward_{backward_tag}"
     # fast_math is a module option: each variant gets its own module.
     options = dict(enable_backward=False, module="unique", module_options={"fast_math": fast_math})
-    return wp.kernel(forward, **options), wp.kernel(backward, **options)
+    registers = {"cuda_max_registers": max_registers} if max_registers else {}
+    return wp.kernel(forward, **options), wp.kernel(backward, **options, **registers)

@@ -261,6 +261,19 @@ def kernel_breakdown(fn, backward: bool, grads, runs: int = 5) -> dict:
     return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
 
 
+def input_gradients(call, scene: dict, grads) -> dict:
+    """{input name: its gradient} of Σ image·grads[0] + Σ alpha·grads[1] through ``call()`` (which
+    renders ``scene``'s leaf tensors); the leaves' .grad is cleared before and after."""
+    for t in scene.values():
+        t.grad = None
+    image, alpha = call()
+    (image * grads[0]).sum().add_((alpha * grads[1]).sum()).backward()
+    out = {name: t.grad.clone() for name, t in scene.items()}
+    for t in scene.values():
+        t.grad = None
+    return out
+
+
 def benchmark_scene(kind: str, n: int, width: int, height: int, device: str, options: RasterOptions | None = None,
                     variants=(), with_gsplat: bool = False, warmup: int = 3, runs: int = 20,
                     breakdown: bool = False) -> dict:
@@ -270,7 +283,8 @@ def benchmark_scene(kind: str, n: int, width: int, height: int, device: str, opt
     Returns a row: scene, n, width, height; NAME_fwd_ms and NAME_fwdbwd_ms (medians of ``runs`` after
     ``warmup``) for every renderer; intersections and visible Gaussians of ours; with gsplat also
     max_image_diff, pixels_over_1e-4, max_alpha_diff, fwd_ratio and fwdbwd_ratio (ours / gsplat), and
-    NAME_max_image_diff, NAME_fwd_ratio, NAME_fwdbwd_ratio for each variant; with ``breakdown``
+    NAME_max_image_diff, NAME_fwd_ratio, NAME_fwdbwd_ratio for each variant; NAME_max_grad_diff, the
+    largest over the inputs of a variant's gradient's ``relative_error`` to ours; with ``breakdown``
     (CUDA only) breakdown_ms: {renderer: ``kernel_breakdown`` of its forward+backward}, each
     renderer with its own options.
     """
@@ -309,6 +323,11 @@ def benchmark_scene(kind: str, n: int, width: int, height: int, device: str, opt
                 row[f"{name}_max_image_diff"] = float((calls[name]()[0] - ref).abs().max())
                 row[f"{name}_fwd_ratio"] = row[f"{name}_fwd_ms"] / row["gsplat_fwd_ms"]
                 row[f"{name}_fwdbwd_ratio"] = row[f"{name}_fwdbwd_ms"] / row["gsplat_fwdbwd_ms"]
+    if variants:
+        base = input_gradients(calls["ours"], scene, grads)
+        for name, _ in variants:
+            other = input_gradients(calls[name], scene, grads)
+            row[f"{name}_max_grad_diff"] = max(relative_error(other[key], base[key]) for key in base)
     if breakdown:
         row["breakdown_ms"] = {name: kernel_breakdown(call, True, grads) for name, call in calls.items()}
     return row
@@ -320,8 +339,10 @@ def benchmark_table(rows: list, title: str) -> str:
     them; then, for rows with a breakdown, a per-kernel table of each renderer."""
     with_gsplat = bool(rows) and "gsplat_fwd_ms" in rows[0]
     names = [k[:-len("_fwd_ms")] for k in rows[0] if k.endswith("_fwd_ms") and k != "gsplat_fwd_ms"] if rows else []
+    with_grads = bool(rows) and any(k.endswith("_max_grad_diff") for k in rows[0])
     header = "| scene | N | renderer | fwd ms | fwd+bwd ms |" + (
-        " gsplat fwd ms | gsplat fwd+bwd ms | fwd ratio | fwd+bwd ratio | max |Δimage| |" if with_gsplat else "")
+        " gsplat fwd ms | gsplat fwd+bwd ms | fwd ratio | fwd+bwd ratio | max |Δimage| |" if with_gsplat else "") + (
+        " Δgrad vs ours |" if with_grads else "")
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in rows:
         for name in names:
@@ -330,6 +351,8 @@ def benchmark_table(rows: list, title: str) -> str:
                 prefix = "" if name == "ours" else name + "_"
                 line += (f" {r['gsplat_fwd_ms']:.2f} | {r['gsplat_fwdbwd_ms']:.2f} | {r[prefix + 'fwd_ratio']:.2f} |"
                          f" {r[prefix + 'fwdbwd_ratio']:.2f} | {r[prefix + 'max_image_diff']:.1e} |")
+            if with_grads:
+                line += " — |" if name == "ours" else f" {r[name + '_max_grad_diff']:.1e} |"
             lines.append(line)
     text = title + "\n\n" + "\n".join(lines)
     for r in rows:

@@ -22,6 +22,7 @@ DEPTH_MODES = (None, "accumulated", "expected")
 # Which tiles a Gaussian is binned to: every tile of its radius rectangle (gsplat 1.5), or only those
 # its ellipse at the alpha threshold reaches (same image, fewer intersections to sort and blend).
 TILE_OVERLAPS = ("ellipse", "rectangle")
+BACKWARD_WALKS = ("block", "warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +75,15 @@ class RasterOptions:
     # b32:backward_block=32 compares them).
     forward_block: int = 256
     backward_block: int = 256
+    # Where each pixel group of the backward starts its back-to-front walk of a batch: at the last
+    # Gaussian any pixel of the block used ("block"), or of its own CUDA warp ("warp", gsplat's
+    # bound: warps whose pixels stopped early skip the tail). Same gradients; launch work only
+    # (scripts/bench_rasterizer.py --variant warpwalk:backward_walk=warp compares them).
+    backward_walk: str = "block"
+    # CUDA only: registers per thread the backward blending kernel may use (0: the compiler's
+    # choice, 92 for 3 channels on sm_90). At 256 threads a block, ≤ 80 fits 3 blocks on an H100
+    # multiprocessor instead of 2, ≤ 64 fits 4, against a few bytes spilled to local memory.
+    backward_max_registers: int = 0
 
     def __post_init__(self):
         if self.tile_size not in (8, 16, 32):
@@ -84,6 +94,11 @@ class RasterOptions:
             raise ValueError(f"color_storage must be one of {tuple(COLOR_STORAGES)}, got {self.color_storage!r}")
         if self.tile_overlap not in TILE_OVERLAPS:
             raise ValueError(f"tile_overlap must be one of {TILE_OVERLAPS}, got {self.tile_overlap!r}")
+        if self.backward_max_registers and not 32 <= self.backward_max_registers <= 255:
+            raise ValueError(f"backward_max_registers must be 0 (the compiler's choice) or in [32, 255], "
+                             f"got {self.backward_max_registers}")
+        if self.backward_walk not in BACKWARD_WALKS:
+            raise ValueError(f"backward_walk must be one of {BACKWARD_WALKS}, got {self.backward_walk!r}")
         if self.render_depth not in DEPTH_MODES:
             raise ValueError(f"render_depth must be one of {DEPTH_MODES}, got {self.render_depth!r}")
         if not 0.0 < self.near_plane < self.far_plane:
@@ -378,8 +393,7 @@ class RenderPlan:
         cooperative = not (self.device.is_cpu and not wp.config.enable_cpu_blocks)
         self._fwd_block = opts.block(opts.forward_block)
         self._bwd_block = opts.block(opts.backward_block)
-        batch = batch_size(c, self._fwd_block, with_depth, opts.color_storage) if cooperative else CPU_BATCH
-        self._blend = blend_kernels(c, ts, with_depth, batch, cooperative, opts.color_storage, opts.fast_math)
+        self._blend = blend_kernels_for(opts, c, with_depth, cooperative)
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
@@ -450,6 +464,15 @@ class RenderPlan:
         adjoints = {key: [a.grad if isinstance(a, wp.array) else None for a in self._projection[key]]
                     for key in ("inputs", "outputs")}
         wp.launch(**self._projection, adj_inputs=adjoints["inputs"], adj_outputs=adjoints["outputs"], adjoint=True)
+
+
+def blend_kernels_for(opts: RasterOptions, channels: int, with_depth: bool, cooperative: bool):
+    """(forward, backward) blending kernels a render with ``opts`` launches for ``channels`` colour
+    channels (``cooperative``: CUDA's shared-memory batches; the CPU reads directly)."""
+    batch = batch_size(channels, opts.block(opts.forward_block), with_depth, opts.color_storage) if cooperative \
+        else CPU_BATCH
+    return blend_kernels(channels, opts.tile_size, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
+                         opts.backward_walk == "warp", opts.backward_max_registers)
 
 
 class _Scope:

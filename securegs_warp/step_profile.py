@@ -19,7 +19,7 @@ import torch
 
 from . import render as render_module
 from .rasterizer import _Rasterize
-from .train import base as trainer_base
+from .train import base as train_base
 
 # Section names, in the order of a step.
 SECTIONS = ("public heads", "public rasterize", "hidden heads", "hidden rasterize", "hidden branch other",
@@ -113,8 +113,8 @@ def profile_steps(trainer, steps: int) -> dict:
         (trainer.optimizer, "zero_grad", timer.timed(trainer.optimizer.zero_grad, "zero_grad")),
         (trainer.strategy, "step_post_backward", timer.timed(trainer.strategy.step_post_backward, "strategy")),
         (render_module, "rasterize", timer.timed(render_module.rasterize, lambda p: f"{_branch(p)} rasterize")),
-        (trainer_base, "nonfinite_gradient_counts",
-         timer.timed(trainer_base.nonfinite_gradient_counts, "gradient check")),
+        (train_base, "nonfinite_gradient_counts",
+         timer.timed(train_base.nonfinite_gradient_counts, "gradient check")),
         (torch.Tensor, "backward", timer.timed(torch.Tensor.backward, "backward (autograd, MLPs)")),
         (_Rasterize, "backward", staticmethod(timer.timed(_Rasterize.backward, "rasterize backward"))),
     ]

@@ -98,7 +98,10 @@ def test_benchmark_scene_row_and_table():
     for name in ("ours", "t32"):
         assert row[f"{name}_fwd_ms"] > 0 and row[f"{name}_fwdbwd_ms"] > 0
     assert row["intersections"] > 0 and 0 < row["visible"] <= 300 and "breakdown_ms" not in row
+    # Another tile size: the same gradients up to float32 summation order.
+    assert 0.0 <= row["t32_max_grad_diff"] < 1e-4
     table = benchmark.benchmark_table([row], "title")
+    assert "| Δgrad vs ours |" in table and f"| {row['t32_max_grad_diff']:.1e} |" in table
     assert table.startswith("title\n\n| scene | N |") and "| realistic | 300 |" in table
     with pytest.raises(ValueError, match="'ours' is taken"):
         benchmark.benchmark_scene("random", 10, 8, 8, "cpu", variants=[("ours", RasterOptions())])
@@ -117,7 +120,8 @@ def test_kernel_breakdown_gets_the_timed_options(monkeypatch):
     row = benchmark.benchmark_scene("random", 50, 16, 16, "cpu", options, [variant], warmup=0, runs=1,
                                     breakdown=True)
     assert row["breakdown_ms"] == {"ours": {"kernel": 1.0}, "cap": {"kernel": 1.0}}
-    # Timed forward and forward+backward of each, the count render of ours, then each one's breakdown.
-    assert seen == [options] * 2 + [variant[1]] * 2 + [options] * 2 + [variant[1]]
+    # Timed forward and forward+backward of each, the count render of ours, the gradients of ours and
+    # the variant (compared), then each one's breakdown.
+    assert seen == [options] * 2 + [variant[1]] * 2 + [options] * 2 + [variant[1], options, variant[1]]
     table = benchmark.benchmark_table([row], "t")
     assert "| random | 50 | cap |" in table and "Per-kernel GPU time, random 50, cap" in table

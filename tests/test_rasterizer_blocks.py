@@ -11,9 +11,9 @@ SCRIPT = """
     from securegs_warp.raster_cases import error_row, layered_scene, random_scene, render_both
 
     out = []
-    for blocks in [(256, 32), (64, 64), (32, 256)]:
+    for blocks in [(256, 32, "block"), (64, 64, "block"), (32, 256, "block"), (64, 64, "warp")]:
         for name, scene in [("random", random_scene(30, n=70, width=37, height=29)), ("layers", layered_scene())]:
-            scene.kwargs.update(forward_block=blocks[0], backward_block=blocks[1])
+            scene.kwargs.update(forward_block=blocks[0], backward_block=blocks[1], backward_walk=blocks[2])
             ours, ref = render_both(scene)
             out.append({"blocks": blocks, "scene": name, **error_row(ours, ref)})
     print("RESULT" + json.dumps(out))
@@ -22,7 +22,7 @@ SCRIPT = """
 
 def test_multithreaded_blocks_match_reference():
     rows = run_with_cpu_blocks(SCRIPT)
-    assert len(rows) == 6
+    assert len(rows) == 8
     for row in rows:
         assert row["image"] <= 1e-4 and row["alpha"] <= 1e-4, row
         for name in DIFF_INPUTS:

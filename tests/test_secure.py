@@ -110,6 +110,27 @@ def test_hidden_learnt_compares_the_render_with_a_flat_image(trained, hidden_sce
     assert image["hidden_learnt"] is False
 
 
+def test_hidden_render_of_the_public_view_reuses_its_visibility_test(hidden_scene, monkeypatch):
+    """The hidden render of the step's own view decodes the public render's visible anchors, as
+    it would have found them itself; the visibility test then runs once per step, not twice."""
+    import securegs_warp.render as render_module
+
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=10, raster=CPU_RASTER),
+                            SecureConfig(payload="object+bits:48"))
+    cam = hidden_scene.train[2]
+    public = trainer.render(cam, camera_index=2)
+    shared = trainer.render_hidden(cam, camera_index=2, visible=public["gaussians"]["visible_mask"])
+    own = trainer.render_hidden(cam, camera_index=2)
+    assert public["gaussians"]["visible_mask"].any() and not public["gaussians"]["visible_mask"].all()
+    for key in ("image", "alpha"):
+        assert torch.equal(shared[key], own[key])
+    calls = []
+    original = render_module.visible_anchor_mask
+    monkeypatch.setattr(render_module, "visible_anchor_mask", lambda *a, **k: calls.append(1) or original(*a, **k))
+    trainer.step()
+    assert len(calls) == 1
+
+
 def test_bits_are_decoded_exactly(trained):
     trainer, _ = trained
     assert trainer.evaluate_hidden()["bit_accuracy"] == 1.0

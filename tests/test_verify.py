@@ -63,6 +63,17 @@ def test_each_anchor_keeps_its_bit_when_others_are_pruned():
     assert set(bits.tolist()) == set(range(len(MESSAGE)))  # 2000 anchors give every bit voters
 
 
+def test_anchor_bits_follow_the_positions_not_a_stale_copy():
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
+    _, xyz = anchors()
+    fresh = lambda x: KeyedBitDecoder(32, MESSAGE, decoder.seed, CELL).anchor_bits(x)  # noqa: E731 (no history)
+    bits = decoder.anchor_bits(xyz)
+    assert torch.equal(decoder.anchor_bits(xyz.clone()), bits)  # same bytes: the kept bits
+    xyz += 3.7 * CELL  # moved in place, across cells
+    assert torch.equal(decoder.anchor_bits(xyz), fresh(xyz))
+    assert not torch.equal(decoder.anchor_bits(xyz), bits)
+
+
 def test_bits_survive_position_changes_smaller_than_the_cell():
     feat, xyz = anchors()
     decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)

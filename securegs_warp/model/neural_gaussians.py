@@ -123,15 +123,17 @@ def generate_neural_gaussians(
 
     neural_opacity = neural_opacity.reshape(-1)
     mask = neural_opacity > 0.0
+    # The kept rows found once (one host synchronisation; each boolean-mask index costs one).
+    kept = mask.nonzero()[:, 0]
     # Gaussian i*k + j belongs to visible anchor i: select per-anchor quantities by that anchor.
-    parent = torch.arange(anchor_index.shape[0], device=device).repeat_interleave(k)[mask]
-    cov = cov.reshape(-1, 7)[mask]
+    parent = kept // k
+    cov = cov.reshape(-1, 7)[kept]
     return {
-        "means": xyz[parent] + displacement.reshape(-1, 3)[mask],
+        "means": xyz[parent] + displacement.reshape(-1, 3)[kept],
         "quats": F.normalize(cov[:, 3:7], dim=-1),
         "scales": scaling[parent, 3:] * torch.sigmoid(cov[:, :3]),
-        "opacities": neural_opacity[mask],
-        "colors": color.reshape(-1, 3)[mask],
+        "opacities": neural_opacity[kept],
+        "colors": color.reshape(-1, 3)[kept],
         "anchor_index": anchor_index[parent],
         "neural_opacity": neural_opacity,
         "mask": mask,

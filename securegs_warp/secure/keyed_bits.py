@@ -91,20 +91,32 @@ class KeyedBitDecoder(nn.Module):
         self._mix = np.frombuffer(_stream(seed, f"anchors:{message}", 32), dtype="<u8") | np.uint64(1)
         # in [0, cell)^3: where the cell faces lie is part of the key
         self._offset = (keyed_uniform(seed, f"cell offset:{message}", (3,)).numpy().astype(np.float64) + 1) / 2 * self.cell
+        self._last_bits = None  # (a copy of the float32 positions [N, 3] last hashed, their bits [N])
 
     @property
     def n_bits(self) -> int:
         return len(self.message)
 
     def anchor_bits(self, xyz: torch.Tensor) -> torch.Tensor:
-        """The bit [N] (int64, 0..L-1) that each anchor at positions xyz [N, 3] (float32) carries."""
+        """The bit [N] (int64, 0..L-1) that each anchor at positions xyz [N, 3] (float32) carries.
+
+        The last positions' bits are kept: anchors do not move during training (learning rate 0), so
+        each step's projection asks again for the same positions, and comparing their bytes on the
+        device costs less than copying them to the host and hashing them again."""
+        last = self._last_bits
+        if (last is not None and xyz.dtype == torch.float32 and last[0].shape == xyz.shape
+                and last[0].device == xyz.device and torch.equal(last[0].view(torch.int32), xyz.detach().view(torch.int32))):
+            return last[1]
         cells = np.floor((xyz.detach().to("cpu", torch.float64).numpy() + self._offset) / self.cell)
         words = cells.astype(np.int64).view(np.uint64)
         with np.errstate(over="ignore"):  # arithmetic modulo 2^64 is the point
             h = (words[:, 0] * self._mix[0]) ^ (words[:, 1] * self._mix[1]) ^ (words[:, 2] * self._mix[2])
             h = (h ^ (h >> np.uint64(29))) * self._mix[3]
             h ^= h >> np.uint64(32)
-        return torch.from_numpy((h % np.uint64(self.n_bits)).astype(np.int64)).to(xyz.device)
+        bits = torch.from_numpy((h % np.uint64(self.n_bits)).astype(np.int64)).to(xyz.device)
+        if xyz.dtype == torch.float32:
+            self._last_bits = (xyz.detach().clone(), bits)
+        return bits
 
     def forward(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(logits [N], the bit each anchor votes on [N] int64) of anchors with features feat [N, d]

@@ -42,13 +42,15 @@ class SecureModel(ScaffoldModel):
 
     def render_hidden(self, camera, options: RasterOptions | None = None, *, background: torch.Tensor | None = None,
                       camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
-                      anchors=None, secret: int = 0) -> dict:
+                      anchors=None, secret: int = 0, visible: torch.Tensor | None = None) -> dict:
         """Secret ``secret``'s hidden render of a view (as ``ScaffoldModel.render``); needs its key.
 
         feature_grad, scaling_grad: the share of this render's gradient that reaches the public
         anchor features and scalings (training only; see ``generate_neural_gaussians``).
         anchors: what to decode instead of this model's anchors: robust training's
         ``PerturbedAnchors`` (same rows; its ``keep`` mask drops anchors from the render).
+        visible: [N] bool, the anchors of ``anchors`` visible from ``camera`` (``visible_anchor_mask``)
+        when the caller has them already (the public render of the same view): not computed again.
         """
         private = self._key(secret)
         if private.decoder is None:
@@ -57,13 +59,16 @@ class SecureModel(ScaffoldModel):
         anchors = self.anchors if anchors is None else anchors
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
-                           anchor_mask=self._decoding_mask(private, anchors, camera))
+                           anchor_mask=self._decoding_mask(private, anchors, camera, visible))
 
-    def _decoding_mask(self, private: PrivateHeads, anchors, camera) -> torch.Tensor | None:
+    def _decoding_mask(self, private: PrivateHeads, anchors, camera,
+                       visible: torch.Tensor | None = None) -> torch.Tensor | None:
         """[N] bool, the anchors whose hidden Gaussians ``private`` decodes for ``camera``: the box
         frame's serving anchors, else the visible ones (None: render_view's visibility test), less
         those robust training drops (``PerturbedAnchors.keep``)."""
         mask = private.serving_mask(anchors.xyz)
+        if mask is None:
+            mask = visible
         keep = getattr(anchors, "keep", None)
         if keep is None:
             return mask

@@ -8,6 +8,8 @@ backward through all renders, then the region-aware strategy looks at every bran
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -109,12 +111,14 @@ class SecureTrainer(ScaffoldTrainer):
     # -- rendering ------------------------------------------------------------------------------
 
     def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None,
-                      anchors=None, secret: int = 0) -> dict:
+                      anchors=None, secret: int = 0, visible: torch.Tensor | None = None) -> dict:
         """Secret ``secret``'s hidden render of a view, with the gradient shares of training
-        ``step`` (default: the step counter); ``anchors``: robust training's perturbed anchors."""
+        ``step`` (default: the step counter); ``anchors``: robust training's perturbed anchors;
+        ``visible``: see ``SecureModel.render_hidden``."""
         return self.model.render_hidden(cam, self.config.raster, background=self.payloads[secret].background,
                                         camera_index=camera_index, feature_grad=self.current_feature_grad(step),
-                                        scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors, secret=secret)
+                                        scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors, secret=secret,
+                                        visible=visible)
 
     def current_feature_grad(self, step: int | None = None) -> float:
         """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
@@ -133,12 +137,14 @@ class SecureTrainer(ScaffoldTrainer):
             view = index if p.views is not None else p.image_view
             if view is None:
                 continue
+            # Same view and same anchors as the public render: its visibility test holds as it is.
+            visible = branches["public"][0]["visible_mask"] if view == index and anchors is None else None
             out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors,
-                                     secret=secret)
+                                     secret=secret, visible=visible)
             target = p.views[view] if p.views is not None else p.image
             loss = loss + p.weight * self.image_loss(out, target)
             hidden.append((out["gaussians"], out["info"], p.weight))
-            extra["psnr_hidden" + secret_suffix(secret)] = psnr(out["image"].detach(), target)
+            extra["psnr_hidden" + secret_suffix(secret)] = functools.partial(psnr, out["image"].detach(), target)
         if hidden:
             branches["hidden"] = hidden
         return loss, extra

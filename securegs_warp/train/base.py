@@ -49,6 +49,12 @@ class ViewTrainer:
         self._targets = [torch.as_tensor(c.image, device=self.device) for c in scene.train]
         self._order: list[int] = []
 
+    def adam(self, groups: list[dict]) -> torch.optim.Adam:
+        """Adam over ``groups`` (learning rates set per group, eps 1e-15 as 3DGS and Scaffold-GS).
+        On CUDA one fused kernel updates every tensor of every group (the foreach path launches
+        several per group); the update is Adam's either way, up to float rounding."""
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=self.device.type == "cuda")
+
     # -- what a subclass provides ---------------------------------------------------------------
 
     def _update_learning_rates(self, step: int) -> None:
@@ -114,6 +120,9 @@ class ViewTrainer:
             self.optimizer.step()
             self.after_update()
         self.optimizer.zero_grad(set_to_none=True)
+        # Numbers that read the device (a host synchronisation each) are taken here, once the whole
+        # step is queued; extra_losses may hand them over as functions for that reason.
+        extra = {key: value() if callable(value) else value for key, value in extra.items()}
         result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target), **self.size_stats(),
                   **extra, **changed}
         self._order.pop()
@@ -126,8 +135,9 @@ class ViewTrainer:
         message there)."""
 
     def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
-        """Hook for further losses: (total loss, numbers to report); a hidden render adds its
-        (gaussians, info) to ``branches`` under "hidden". Plain training has the public loss only."""
+        """Hook for further losses: (total loss, numbers to report, each a value or a function that
+        gives it at the end of the step); a hidden render adds its (gaussians, info) to ``branches``
+        under "hidden". Plain training has the public loss only."""
         return loss, {}
 
     @torch.no_grad()
@@ -216,7 +226,9 @@ class ViewTrainer:
 @torch.no_grad()
 def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int]:
     """Parameter group name -> number of inf/NaN gradient entries, for the groups that have any
-    (empty: every gradient is finite). One host sync.
+    (empty: every gradient is finite). One host sync: the finite case, every step's, costs one
+    fused reduction (the L1 norm of all gradients, which an inf or NaN entry makes non-finite); only
+    a non-finite norm, which huge finite entries can also give, counts entry by entry.
 
     The trainer skips a step with any such entry: no optimizer step, and no densification step
     either (neither its statistics nor, on an update step, growth and pruning, which wait for the
@@ -233,6 +245,8 @@ def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int
              for i, group in enumerate(optimizer.param_groups)]
     named = [(name, grads) for name, grads in named if grads]
     if not named:
+        return {}
+    if bool(torch.isfinite(torch.nn.utils.get_total_norm([g for _, grads in named for g in grads], norm_type=1.0))):
         return {}
     totals = torch.stack([sum((~torch.isfinite(g)).sum() for g in grads) for _, grads in named]).tolist()
     return {name: int(n) for (name, _), n in zip(named, totals) if n}

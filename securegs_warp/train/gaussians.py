@@ -48,7 +48,7 @@ class GaussianTrainer(ViewTrainer):
     def _make_optimizer(self) -> torch.optim.Adam:
         lr = self._learning_rates()
         groups = [{"params": [getattr(self.model, name)], "lr": lr[name], "name": name} for name in GAUSSIAN_PARAM_NAMES]
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        return self.adam(groups)
 
     def _update_learning_rates(self, step: int) -> None:
         gs = self.gs

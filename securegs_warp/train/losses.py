@@ -14,12 +14,23 @@ SSIM_SIGMA = 1.5
 
 @functools.lru_cache(maxsize=8)
 def _gaussian_window(channels: int, device: torch.device) -> torch.Tensor:
-    """[C, 1, 11, 11] separable Gaussian window (σ 1.5), one per channel (grouped convolution)."""
+    """[channels, 1, 11] 1-D Gaussian window (σ 1.5, sums to 1), one row per channel: 3DGS's 11×11
+    window is its outer product with itself, so two 1-D passes give the same blur."""
     x = torch.arange(SSIM_WINDOW, dtype=torch.float32) - SSIM_WINDOW // 2
     g = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
     g = g / g.sum()
-    window = (g[:, None] @ g[None, :]).expand(channels, 1, SSIM_WINDOW, SSIM_WINDOW)
-    return window.contiguous().to(device)
+    return g.expand(channels, 1, SSIM_WINDOW).contiguous().to(device)
+
+
+def _blur(x: torch.Tensor) -> torch.Tensor:
+    """Each channel of x [1, K, H, W] convolved with the 11×11 Gaussian window, zero padded: a row
+    pass then a column pass (22 taps a pixel instead of 121; with zero padding the separable blur
+    is the 2-D one exactly, up to float rounding)."""
+    k = x.shape[1]
+    g = _gaussian_window(k, x.device)
+    pad = SSIM_WINDOW // 2
+    x = F.conv2d(x, g[:, :, None, :], padding=(0, pad), groups=k)
+    return F.conv2d(x, g[:, :, :, None], padding=(pad, 0), groups=k)
 
 
 def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -30,13 +41,11 @@ def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     c = image.shape[-1]
     a = image.permute(2, 0, 1)[None]
     b = target.permute(2, 0, 1)[None]
-    w = _gaussian_window(c, image.device)
-    pad = SSIM_WINDOW // 2
-    mu_a = F.conv2d(a, w, padding=pad, groups=c)
-    mu_b = F.conv2d(b, w, padding=pad, groups=c)
-    var_a = F.conv2d(a * a, w, padding=pad, groups=c) - mu_a**2
-    var_b = F.conv2d(b * b, w, padding=pad, groups=c) - mu_b**2
-    cov = F.conv2d(a * b, w, padding=pad, groups=c) - mu_a * mu_b
+    # The five local statistics in one blur: [1, 5C, H, W] → means, second moments.
+    mu_a, mu_b, aa, bb, ab = _blur(torch.cat([a, b, a * a, b * b, a * b], dim=1)).split(c, dim=1)
+    var_a = aa - mu_a**2
+    var_b = bb - mu_b**2
+    cov = ab - mu_a * mu_b
     c1, c2 = 0.01**2, 0.03**2
     ssim_map = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
     return ssim_map.mean()

@@ -75,7 +75,7 @@ class ScaffoldTrainer(ViewTrainer):
         })
         for name, module in self.head_groups().items():
             groups.append({"params": list(module.parameters()), "lr": self._mlp_schedule(name)[0], "name": name})
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        return self.adam(groups)
 
     def _update_learning_rates(self, step: int) -> None:
         c = self.config

@@ -1,0 +1,44 @@
+"""Registers and local-memory frame per thread of the blending kernels compiled for a CUDA
+architecture (default sm_90, the H100), for each backward variant of RasterOptions: read from the
+cubins Warp's NVRTC produces, so it runs without a GPU.
+
+    python scripts/kernel_registers.py                 # 3 channels, tiles of 16, blocks of 256
+    python scripts/kernel_registers.py --channels 16 --arch 80
+"""
+import argparse
+
+import warp as wp
+
+from securegs_warp.cuda_resources import kernel_resources
+from securegs_warp.rasterizer import RasterOptions, blend_kernels_for
+
+# (label, RasterOptions fields): the backward variants scripts/bench_rasterizer.py times on the GPU.
+VARIANTS = [
+    ("default", {}),
+    ("backward_walk=warp", {"backward_walk": "warp"}),
+    ("+ backward_max_registers=80", {"backward_walk": "warp", "backward_max_registers": 80}),
+    ("+ backward_max_registers=64", {"backward_walk": "warp", "backward_max_registers": 64}),
+    ("+ fast_math", {"backward_walk": "warp", "fast_math": True}),
+    ("+ fast_math, backward_max_registers=64",
+     {"backward_walk": "warp", "fast_math": True, "backward_max_registers": 64}),
+]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--channels", type=int, default=3)
+    parser.add_argument("--arch", type=int, default=90)
+    args = parser.parse_args()
+    wp.config.quiet = True
+    wp.init()
+    print(f"sm_{args.arch}, {args.channels} channels, tiles of 16, blocks of 256, no depth\n")
+    print("| options | forward registers | backward registers | backward frame bytes |")
+    print("|---|---|---|---|")
+    for label, fields in VARIANTS:
+        forward, backward = blend_kernels_for(RasterOptions(**fields), args.channels, False, True)
+        f, b = kernel_resources(forward, args.arch), kernel_resources(backward, args.arch)
+        print(f"| {label} | {f['registers']} | {b['registers']} | {b['frame_bytes']} |")
+
+
+if __name__ == "__main__":
+    main()

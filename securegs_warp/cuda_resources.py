@@ -1,0 +1,77 @@
+"""Registers and local-memory frame of a Warp kernel compiled for a CUDA architecture, read from the
+cubin that NVRTC produces: no GPU is needed (Warp compiles ahead of time with ``compile_aot_module``).
+
+Occupancy follows from the registers: an H100 multiprocessor holds 65,536 registers, allocated per
+warp in multiples of 256 (8 per thread), so blocks of 256 threads fit 2 per multiprocessor at 81–128
+registers a thread, 3 at 73–80 and 4 at ≤ 64. A frame of more than 0 bytes means spilled registers
+or a local array.
+"""
+from __future__ import annotations
+
+import struct
+import tempfile
+
+import warp as wp
+
+# .nv.info attribute ids (CUDA's EIATTR_*), each with a (kernel symbol index, value) payload.
+_EIATTR = {0x2F: "registers", 0x11: "frame_bytes"}
+_EIFMT_NVAL, _EIFMT_BVAL, _EIFMT_HVAL, _EIFMT_SVAL = 1, 2, 3, 4
+
+
+def _sections(elf: bytes) -> dict[str, bytes]:
+    """Section name -> contents of a 64-bit little-endian ELF file."""
+    if elf[:4] != b"\x7fELF" or elf[4] != 2:
+        raise ValueError("not a 64-bit ELF file")
+    shoff = struct.unpack_from("<Q", elf, 0x28)[0]
+    shentsize, shnum, shstrndx = struct.unpack_from("<HHH", elf, 0x3A)
+    headers = [struct.unpack_from("<IIQQQQ", elf, shoff + i * shentsize) for i in range(shnum)]
+    names_at = headers[shstrndx][4]
+
+    def name(offset):
+        start = names_at + offset
+        return elf[start:elf.index(b"\0", start)].decode()
+
+    return {name(h[0]): elf[h[4]:h[4] + h[5]] for h in headers}
+
+
+def _attributes(data: bytes):
+    """(attribute id, kernel symbol index, value) of each (index, value) entry of a .nv.info section."""
+    p = 0
+    while p < len(data):
+        fmt, attr = data[p], data[p + 1]
+        if fmt == _EIFMT_SVAL:
+            size = struct.unpack_from("<H", data, p + 2)[0]
+            if size == 8:
+                yield (attr, *struct.unpack_from("<II", data, p + 4))
+            p += 4 + size
+        elif fmt in (_EIFMT_NVAL, _EIFMT_BVAL, _EIFMT_HVAL):  # 4 bytes, value inline
+            p += 4
+        else:
+            raise ValueError(f"unknown .nv.info attribute format {fmt} at byte {p}")
+
+
+def cubin_resources(cubin: bytes) -> dict[str, int]:
+    """{"registers", "frame_bytes"} of the one kernel of ``cubin`` (the global .nv.info section's
+    entries). Raises ValueError when the file is not an ELF cubin or holds several kernels."""
+    info = _sections(cubin).get(".nv.info")
+    if info is None:
+        raise ValueError("the cubin has no .nv.info section")
+    found: dict[str, dict[int, int]] = {}
+    for attr, kernel, value in _attributes(info):
+        if attr in _EIATTR:
+            found.setdefault(_EIATTR[attr], {})[kernel] = value
+    registers = found.get("registers", {})
+    if len(registers) != 1:
+        raise ValueError(f"expected the register count of one kernel, found {len(registers)}")
+    (kernel, count), = registers.items()
+    return {"registers": count, "frame_bytes": found.get("frame_bytes", {}).get(kernel, 0)}
+
+
+def kernel_resources(kernel, arch: int = 90) -> dict[str, int]:
+    """{"registers", "frame_bytes"} per thread of ``kernel`` (a ``wp.Kernel`` alone in its module,
+    as ``module="unique"`` makes it) compiled for sm_``arch``. Needs Warp's NVRTC (any Warp build
+    with CUDA support), not a GPU."""
+    with tempfile.TemporaryDirectory() as folder:
+        paths = wp.compile_aot_module(kernel.module, device=None, arch=arch, module_dir=folder, use_ptx=False)
+        with open(paths[0], "rb") as f:
+            return cubin_resources(f.read())
