@@ -19,38 +19,42 @@ import torch
 
 from securegs_warp.baselines.gs_hider import (GSHiderModel, evaluate_gs_hider, hidden_payload, release_bytes,
                                               train_gs_hider)
-from securegs_warp.cli.common import quiet_warp
-from securegs_warp.config import GSHiderConfig
-from securegs_warp.data import make_synthetic_scene
+from securegs_warp.cli.common import SCENE_FLAGS, TRAIN_FLAGS, add_config_flags, config_from_args, quiet_warp
+from securegs_warp.config import GSHiderConfig, RunConfig, TrainConfig
+
+# What the synthetic scene renders as hidden views: by default the other built-in scene, seen from
+# every camera (GS-Hider's 3D scene hiding); --hide OBJECT --level scene hides an object inside the
+# cover, as SecureGS compares GS-Hider.
+HIDDEN_FLAGS = (("--hide", "scene.hidden", "synthetic scenes: 'scene' or an object (mug, lamp, pawn, robot)"),
+                ("--level", "scene.level", "for an object: 'scene' (inside the cover) or 'object' (alone)"))
+DEFAULTS = {"train.iterations": 600, "scene.hidden": "scene", "scene.level": "scene"}
+
+
+def progress(step: int, stats: dict) -> None:
+    if step % 100 == 0:
+        print(f"  step {step}: psnr {stats['psnr']:.2f}, hidden {stats['psnr_hidden']:.2f}, "
+              f"{stats['gaussians']} Gaussians", flush=True)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--width", type=int, default=128)
-    ap.add_argument("--height", type=int, default=96)
-    ap.add_argument("--train-views", type=int, default=32)
-    ap.add_argument("--test-views", type=int, default=8)
-    ap.add_argument("--iterations", type=int, default=600)
-    ap.add_argument("--hide", default="scene", help="what the synthetic scene renders as hidden views: 'scene' (the "
-                                                    "other built-in scene) or an object")
-    ap.add_argument("--level", default="scene", help="for an object: 'scene' (inside the cover, as SecureGS "
-                                                     "compares GS-Hider) or 'object'")
+    add_config_flags(ap, SCENE_FLAGS + TRAIN_FLAGS + HIDDEN_FLAGS, DEFAULTS)
     ap.add_argument("--payloads", default="scene,image", help="comma-separated payload specs")
     ap.add_argument("--decoder-width", type=int, default=GSHiderConfig.decoder_width)
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/gs_hider"))
     args = ap.parse_args()
     quiet_warp()
+    run = config_from_args(args, RunConfig(train=TrainConfig(model="3dgs")), DEFAULTS, device=args.device)
     out = Path(args.out)
-    scene = make_synthetic_scene(hidden=args.hide, level=args.level, width=args.width, height=args.height,
-                                 n_train=args.train_views, n_test=args.test_views)
+    scene = run.scene.load()
     config = GSHiderConfig(decoder_width=args.decoder_width)
     rows = []
     for spec in args.payloads.split(","):
         payload = hidden_payload(scene, spec, args.device)
         t0 = time.perf_counter()
-        model = train_gs_hider(scene, payload, args.iterations, args.seed, args.device, config)
+        model = train_gs_hider(scene, payload, run.train.iterations, run.train.seed, args.device, config,
+                               train=run.train, on_step=progress)
         seconds = time.perf_counter() - t0
         public, key = model.save(out / spec.split(":")[0])
         reopened = GSHiderModel.load(public, key, device=args.device)
@@ -58,7 +62,8 @@ def main():
         rows.append({"payload": spec, **metrics, "release_mb": release_bytes(public) / 1e6, "train_s": seconds})
         print(json.dumps(rows[-1]), flush=True)
     (out / "metrics.json").write_text(json.dumps(rows, indent=1))
-    print(f"\n{args.width}x{args.height}, {args.train_views}+{args.test_views} views, {args.iterations} iterations, "
+    spec = run.scene
+    print(f"\n{spec.width}x{spec.height}, {spec.n_train}+{spec.n_test} views, {run.train.iterations} iterations, "
           f"decoder width {args.decoder_width}, {args.device}")
     print("| payload | cover PSNR | cover SSIM | hidden PSNR | hidden SSIM | hidden PSNR, release alone | release MB "
           "| FPS public | FPS hidden | Gaussians | train s |")
