@@ -11,7 +11,7 @@ from securegs_warp.config import GSHiderConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.gaussians.model import PLY_FILE
 from securegs_warp.keys import KeyFileError
-from securegs_warp.secure.container import PLAIN_KEY, PUBLIC_DIR
+from securegs_warp.secure.container import PLAIN_KEY
 
 ITERATIONS = 120
 SMALL = GSHiderConfig(decoder_width=16, decoder_layers=3)
@@ -36,16 +36,17 @@ def trained(scene):
 
 def test_training_raises_cover_and_hidden_psnr(trained):
     trainer, before, after = trained
-    # Measured on this scene (seed 0, 120 steps): cover 10.2 -> 16.4 dB, hidden 10.1 -> 16.0 dB.
-    assert after["psnr_public"] > 15.0 and after["psnr_public"] > before["psnr_public"] + 4.0
-    assert after["psnr_hidden"] > 14.5 and after["psnr_hidden"] > before["psnr_hidden"] + 4.0
+    # Measured on this scene (seed 0, 120 steps, 2-core CPU): cover 8.0 -> 16.6 dB, hidden 10.5 -> 18.2 dB.
+    assert after["psnr_public"] > 15.0 and after["psnr_public"] > before["psnr_public"] + 6.0
+    assert after["psnr_hidden"] > 16.5 and after["psnr_hidden"] > before["psnr_hidden"] + 6.0
     assert after["gaussians"] > before["gaussians"]  # 3DGS densification ran
 
 
 def test_release_alone_does_not_give_the_hidden_views(trained, tmp_path):
     trainer, _, after = trained
-    # The scene decoder's output against the hidden targets scores far below the message decoder's.
-    assert after["psnr_hidden_public"] < after["psnr_hidden"] - 2.0
+    # The scene decoder's output against the hidden targets scores far below the message decoder's
+    # (measured: 13.7 against 18.2 dB).
+    assert after["psnr_hidden_public"] < after["psnr_hidden"] - 3.0
     public, _ = trainer.model.save(tmp_path)
     keyless = GSHiderModel.load(public)
     assert keyless.message_decoder is None
@@ -122,7 +123,8 @@ def test_image_payload_trains_its_view(scene):
     trainer = GSHiderTrainer(scene, TrainConfig(model="3dgs", iterations=30), SMALL, "image:builtin@2")
     stats = [trainer.step() for _ in range(30)]
     assert trainer.payload.image_view == 2 and "psnr_hidden" in stats[-1]
-    assert stats[-1]["psnr_hidden"] > stats[0]["psnr_hidden"]
+    # Measured: 5.0 dB at the first step, 11.7 dB at the 30th.
+    assert stats[-1]["psnr_hidden"] > stats[0]["psnr_hidden"] + 4.0
 
 
 def test_payloads_gs_hider_cannot_carry(scene):
