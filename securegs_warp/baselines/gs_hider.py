@@ -170,7 +170,12 @@ class GSHiderModel(GaussianModel):
         if not public.is_dir():
             raise FileNotFoundError(f"{public}: no GS-Hider release folder there")
         scene_decoder, background = read_decoder(public / SCENE_DECODER_FILE)
-        model = cls(read_feature_ply(public / PLY_FILE), scene_decoder, None, background)
+        try:
+            model = cls(read_feature_ply(public / PLY_FILE), scene_decoder, None, background)
+        except PlyFormatError:
+            raise
+        except ValueError as e:  # the point cloud and the decoder disagree (channel count, shapes)
+            raise ValueError(f"{public}: {e}") from None
         if key is not None:
             model.message_decoder = read_message_decoder(key, passphrase, scene_decoder)
             if model.message_decoder.shape["channels"] != model.channels:
