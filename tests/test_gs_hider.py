@@ -139,3 +139,17 @@ def test_payloads_gs_hider_cannot_carry(scene):
 def test_config_refuses_bad_values(field, value):
     with pytest.raises(ValueError, match=field):
         GSHiderConfig(**{field: value})
+
+
+def test_checkpoint_resumes_the_model_and_both_decoders(trained, tmp_path):
+    trainer, _, _ = trained
+    trainer.save_checkpoint(tmp_path / "checkpoint.pt")
+    fresh = GSHiderTrainer(trainer.scene, trainer.config, SMALL, "scene")
+    fresh.load_checkpoint(tmp_path / "checkpoint.pt")
+    assert fresh.step_count == ITERATIONS and fresh.model.num_gaussians == trainer.model.num_gaussians
+    cam = trainer.scene.test[0]
+    torch.testing.assert_close(fresh.model.render_public(cam), trainer.model.render_public(cam))
+    torch.testing.assert_close(fresh.model.render_hidden(cam), trainer.model.render_hidden(cam))
+    other = GSHiderTrainer(trainer.scene, trainer.config, dataclasses.replace(SMALL, hidden_weight=1.0), "scene")
+    with pytest.raises(ValueError, match="gs_hider.hidden_weight differs"):
+        other.load_checkpoint(tmp_path / "checkpoint.pt")
