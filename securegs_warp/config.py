@@ -254,6 +254,41 @@ class SecureConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class GSHiderConfig:
+    """GS-Hider (Zhang et al., NeurIPS 2024) on a plain 3DGS ``TrainConfig`` (its iterations, seed,
+    rasterizer, SSIM weight, densification and learning rates; the feature's learning rate is
+    ``gaussians.sh_lr``, 0.0025 as GS-Hider's ``semantic_feature_lr``). Defaults are the authors'
+    code (xuanyuzhang21/GS-Hider, train_wm.py, decoder.py) where it states them.
+
+    channels: M, the width of each Gaussian's coupled feature (the authors' 16). decoder_width,
+    decoder_layers: both decoders are that many 3×3 convolutions, ReLU between, ``decoder_width``
+    wide (theirs: 5 layers, 64 wide). hidden_weight: ℓ = ℓ_scene + w·ℓ_message (their 0.5).
+    decoder_lr: Adam for both decoders (their 1e-3). feature_background: the value every feature
+    channel takes behind the Gaussians (their rasterizer writes the background's first channel
+    into all 16; black on their real scenes, so 0 by default).
+    Run by ``baselines.gs_hider`` (and scripts/compare_methods.py), not a run folder's section.
+    """
+
+    channels: int = 16
+    decoder_width: int = 64
+    decoder_layers: int = 5
+    hidden_weight: float = 0.5
+    decoder_lr: float = 0.001
+    feature_background: float = 0.0
+
+    def __post_init__(self):
+        for name in ("channels", "decoder_width"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.decoder_layers < 2:
+            raise ValueError(f"decoder_layers must be >= 2 (an input and an output convolution), "
+                             f"got {self.decoder_layers}")
+        for name in ("hidden_weight", "decoder_lr"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclasses.dataclass(frozen=True)
 class SceneSpec:
     """How to (re)build a run's scene: a built-in name or a data folder, with loader options.
 
