@@ -110,6 +110,9 @@ def test_comparison_runs_and_reports(scene, tmp_path):
     assert set(rows[1]["hidden_psnr_after"]) == {"prune-random:0.1", "export-roundtrip"}
     # The release is a PLY written and read exactly: the key reads the same hidden image from it.
     assert rows[1]["hidden_psnr_after"]["export-roundtrip"] == pytest.approx(rows[1]["psnr_hidden"], abs=1e-3)
+    # GS-Hider's row: its own release format, attacked on its Gaussians
+    assert rows[2]["release_format"].startswith("GS-Hider feature PLY") and rows[2]["psnr_hidden"] is not None
+    assert set(rows[2]["hidden_psnr_after"]) == {"prune-random:0.1", "export-roundtrip"}
     table = write_report(tmp_path, rows, {"device": "CPU", "width": 40, "height": 30, "iterations": 8,
                                           "finetune": 4, "payload": "image"})
     assert "| 3DGS+StegaNeRF |" in table and "third-party" in table
