@@ -86,6 +86,17 @@ class Setup:
     radius: float
     log: object = print
 
+    def progress(self, label: str, total: int, describe):
+        """An ``on_step(step, stats)`` callback that logs ``label``'s progress ten times over ``total``
+        steps; ``describe(stats)`` says what to show besides the step and the seconds so far."""
+        t0, every = time.perf_counter(), max(1, total // 10)
+
+        def on_step(step, stats):
+            if step % every == 0:
+                self.log(f"  {label} {step}/{total}  {describe(stats)}  {time.perf_counter() - t0:.0f} s")
+
+        return on_step
+
     @property
     def background(self):
         bg = self.scene.background
@@ -156,14 +167,8 @@ def run_steganerf(setup: Setup, cover: GaussianTrainer) -> tuple[dict, np.ndarra
     stega = StegaNeRF(cover.model, setup.scene, setup.hidden_image, StegaNeRFConfig(iterations=setup.finetune),
                       raster=setup.train.raster, background=setup.background, seed=setup.train.seed)
     t0 = time.perf_counter()
-    every = max(1, setup.finetune // 10)
-
-    def progress(step, stats):
-        if step % every == 0:
-            setup.log(f"  3DGS+StegaNeRF: fine-tune {step}/{setup.finetune}  hidden mse {stats['hidden']:.4f}  "
-                      f"rgb mse {stats['rgb']:.5f}  {time.perf_counter() - t0:.0f} s")
-
-    stega.train(progress)
+    stega.train(setup.progress("3DGS+StegaNeRF: fine-tune", setup.finetune,
+                               lambda stats: f"hidden mse {stats['hidden']:.4f}  rgb mse {stats['rgb']:.5f}"))
     seconds = cover.train_seconds + time.perf_counter() - t0
     ev = stega.evaluate()
     after = {}

@@ -408,16 +408,10 @@ def compare_row(setup) -> tuple[dict, np.ndarray]:
     spec = "image:builtin@0" if setup.payload == "image" else "object"
     payload = hidden_payload(setup.scene, spec, setup.device)
     t0 = time.perf_counter()
-    every = max(1, setup.iterations // 10)
-
-    def progress(step, stats):
-        if step % every == 0:
-            setup.log(f"  GS-Hider: {step}/{setup.iterations}  hidden {stats['psnr_hidden']:.2f} dB  "
-                      f"{time.perf_counter() - t0:.0f} s")
-
     train = dataclasses.replace(setup.train, model="3dgs")
-    model = train_gs_hider(setup.scene, payload, setup.iterations, seed=train.seed, device=setup.device,
-                           train=train, on_step=progress)
+    model = train_gs_hider(setup.scene, payload, setup.iterations, seed=train.seed, device=setup.device, train=train,
+                           on_step=setup.progress("GS-Hider:", setup.iterations,
+                                                  lambda stats: f"hidden {stats['psnr_hidden']:.2f} dB"))
     seconds = time.perf_counter() - t0
     ev = evaluate_gs_hider(model, setup.scene, payload, train.raster)
     with tempfile.TemporaryDirectory() as tmp:
