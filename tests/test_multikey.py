@@ -30,7 +30,10 @@ def runs(tmp_path_factory):
                      "--passphrase-env", "PASS_C"]) == 0
     finally:
         mp.undo()
+    # its secrets have different passphrases: the checkpoint, sealed with the first one's only, is gone
+    assert not (root / "c" / "checkpoint.pt").exists()
     assert main(["hide", "--out", str(root / "other"), "--payload", "bits:48", "--iterations", "30", *TINY]) == 0
+    assert (root / "other" / "checkpoint.pt").exists()  # one secret: kept (sealed or not like its key)
     return root
 
 

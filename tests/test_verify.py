@@ -90,6 +90,8 @@ def test_bits_survive_position_changes_smaller_than_the_cell():
     assert float((decoder.anchor_bits(xyz + CELL) == bits).float().mean()) < 0.1
     with pytest.raises(ValueError, match="cell"):
         KeyedBitDecoder(32, MESSAGE, new_seed(), 0.0)
+    with pytest.raises(ValueError, match="NaN"):
+        decoder.anchor_bits(torch.cat([xyz, torch.full((1, 3), float("nan"))]))
 
 
 def test_projection_moves_only_the_features_that_disagree_and_only_along_their_bit():
@@ -222,3 +224,20 @@ def test_a_key_of_the_trained_bit_head_is_refused_in_one_line(runs, capsys, tmp_
     assert main(["verify", str(runs / "c" / "public"), "--key", str(old)]) == 2
     err = capsys.readouterr().err.strip()
     assert "earlier securegs-warp" in err and len(err.splitlines()) == 1
+
+
+def test_a_key_without_its_bit_cell_is_refused_in_one_line(runs, capsys, tmp_path):
+    from securegs_warp.io import load_scaffold
+    from securegs_warp.keys import save_key
+    from securegs_warp.secure.container import release_fingerprint
+
+    _, heads = load_scaffold(runs / "c" / "public")
+    for name, extra in (("old", {}), ("bad", {"bit_cell": -1.0})):
+        key = tmp_path / f"{name}.safetensors"
+        save_key(key, {}, {"heads": {"message": "01" * 24, "bit_seed": "ab" * 32, "offsets": False,
+                                     "scale_offsets": True, "hidden": False, **extra}}, release_fingerprint(heads))
+        capsys.readouterr()
+        assert main(["verify", str(runs / "c" / "public"), "--key", str(key)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert str(key) in err and len(err.splitlines()) == 1
+        assert ("earlier securegs-warp" if name == "old" else "bit cell") in err

@@ -208,9 +208,14 @@ def cmd_hide(args) -> int:
         run.path.mkdir(parents=True, exist_ok=True)
         os.chmod(run.path, 0o700)
         trainer = SecureTrainer(config.scene.load(), config.train, config.secure, device=device)
-        return common.start_training(trainer, run, record, resume, args,
+        code = common.start_training(trainer, run, record, resume, args,
                                      finish=lambda: finish_container(trainer, run, config, secrets),
                                      passphrase=passphrase)
+        if code == 0 and len({s.passphrase for s in secrets}) > 1:
+            # The checkpoint holds every secret, sealed with the first secret's passphrase only: a
+            # finished run needs none, so it does not stay behind for the holder of that passphrase.
+            run.checkpoint.unlink(missing_ok=True)
+        return code
 
 
 def recorded(config: RunConfig) -> RunConfig:

@@ -92,10 +92,13 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
     if "bits" in metadata.get("heads", {}):
         raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose bit head was trained rather than derived "
                            "from the key; hide the payload again to get a key this version reads")
+    if "bit_seed" in metadata.get("heads", {}) and "bit_cell" not in metadata["heads"]:
+        raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose bits were dealt by exact anchor positions; "
+                           "hide the payload again to get a key this version reads")
     try:
         private = PrivateHeads(heads, **metadata["heads"]).to(device)
         private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})
-    except (KeyError, TypeError, RuntimeError) as e:
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise KeyFileError(f"{key}: the key's heads do not fit this release ({e})") from None
     return SecureModel(anchors, heads, [private]), metadata
 

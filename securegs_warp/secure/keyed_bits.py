@@ -107,7 +107,10 @@ class KeyedBitDecoder(nn.Module):
         if (last is not None and xyz.dtype == torch.float32 and last[0].shape == xyz.shape
                 and last[0].device == xyz.device and torch.equal(last[0].view(torch.int32), xyz.detach().view(torch.int32))):
             return last[1]
-        cells = np.floor((xyz.detach().to("cpu", torch.float64).numpy() + self._offset) / self.cell)
+        positions = xyz.detach().to("cpu", torch.float64).numpy()
+        if not np.isfinite(positions).all():  # a NaN has no cell: it would be dealt an arbitrary bit
+            raise ValueError("anchor positions hold NaN or inf: their bits are undefined")
+        cells = np.floor((positions + self._offset) / self.cell)
         words = cells.astype(np.int64).view(np.uint64)
         with np.errstate(over="ignore"):  # arithmetic modulo 2^64 is the point
             h = (words[:, 0] * self._mix[0]) ^ (words[:, 1] * self._mix[1]) ^ (words[:, 2] * self._mix[2])
