@@ -166,7 +166,8 @@ def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Cap
         idle = next((k for k, v in _POOL.items() if k != key and not any(e.busy for e in v)), None)
         if idle is None:
             break
-        del _POOL[idle]
+        for entry in _POOL.pop(idle):  # an evicted entry's last render is still checked
+            entry.check_pending()
     for entry in entries:
         if not entry.busy:
             return entry
