@@ -1,5 +1,5 @@
 """The paper's methods side by side on one synthetic scene, payload and budget: Scaffold-GS, SecureGS,
-plain 3DGS, 3DGS + StegaNeRF and GS-Hider (when ``securegs_warp.baselines.gs_hider`` exists).
+plain 3DGS, 3DGS + StegaNeRF and GS-Hider.
 Writes compare_methods.md / .csv / .json and compare_methods.png into --out.
 
     python scripts/compare_methods.py --preset cpu                       # CPU, demo scale

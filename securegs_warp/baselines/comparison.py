@@ -1,5 +1,5 @@
 """The paper's comparison on one synthetic scene: Scaffold-GS and plain 3DGS (the covers without a
-payload), SecureGS, 3DGS + StegaNeRF and GS-Hider (where ``baselines.gs_hider`` exists), with one
+payload), SecureGS, 3DGS + StegaNeRF and GS-Hider, with one
 payload and one iteration budget. ``scripts/compare_methods.py`` is its command line.
 
 Per method: cover PSNR/SSIM on the held-out views, hidden PSNR/SSIM, FPS of the public and the
@@ -9,16 +9,15 @@ means for the explicit methods; the density ratio is over the cover model of the
 the hidden PSNR after each attack of ``attacks`` (``securegs_warp.attacks`` on anchor releases,
 ``gaussians.attacks`` on explicit ones).
 
-A GS-Hider module joins by providing ``compare_row(setup: Setup) -> (row, public_xyz)``: ``row``
-with the keys of ``COLUMNS`` it can fill (``hidden_psnr_after`` a {spec: PSNR} dict) and
-``public_xyz`` [N, 3] the public Gaussian means (None when it cannot hide the payload: then
-``row["note"]`` says why).
+Each method's runner returns ``(row, public_xyz)``: ``row`` with the keys of ``COLUMNS`` it can
+fill (``hidden_psnr_after`` a {spec: PSNR} dict) and ``public_xyz`` [N, 3] the public primitives'
+positions (None when it cannot hide the payload: then ``row["note"]`` says why); GS-Hider's is
+``gs_hider.compare_row``.
 """
 from __future__ import annotations
 
 import copy
 import dataclasses
-import importlib
 import json
 import math
 import tempfile
@@ -38,6 +37,7 @@ from ..robustness import attacked_copy
 from ..secure import SecureTrainer
 from ..secure.security import exposure
 from ..train import GaussianTrainer, ScaffoldTrainer
+from .gs_hider import compare_row as gs_hider_row
 from .steganerf import StegaNeRF, hidden_image_for
 
 PAYLOADS = ("image", "object")
@@ -222,16 +222,6 @@ def run_securegs(setup: Setup) -> tuple[dict, np.ndarray]:
             trainer.model.anchors.xyz.detach().cpu().numpy())
 
 
-def run_gs_hider(setup: Setup) -> tuple[dict, np.ndarray | None]:
-    try:
-        module = importlib.import_module("securegs_warp.baselines.gs_hider")
-    except ImportError as e:
-        return {"method": "GS-Hider", "note": f"not run: securegs_warp.baselines.gs_hider is absent ({e})"}, None
-    if not hasattr(module, "compare_row"):
-        return {"method": "GS-Hider", "note": "not run: baselines.gs_hider has no compare_row(setup)"}, None
-    return module.compare_row(setup)
-
-
 def run_all(setup: Setup, methods=("scaffold", "securegs", "3dgs", "steganerf", "gs_hider"), on_row=None) -> list[dict]:
     """Run the methods in order; returns one row per method (``on_row(rows)`` after each). The
     density ratio of each anchor model is over Scaffold-GS's, of each explicit model over 3DGS's."""
@@ -250,7 +240,7 @@ def run_all(setup: Setup, methods=("scaffold", "securegs", "3dgs", "steganerf", 
         elif name == "securegs":
             row, xyz = run_securegs(setup)
         elif name == "gs_hider":
-            row, xyz = run_gs_hider(setup)
+            row, xyz = gs_hider_row(setup)
         else:
             raise ValueError(f"unknown method {name!r}")
         row = {"payload": setup.payload, **row, "wall_seconds": round(time.perf_counter() - t0, 1)}
