@@ -17,19 +17,11 @@ import torch
 
 from ..gaussians.model import GAUSSIAN_PARAM_NAMES
 from ..model.anchors import inverse_sigmoid
+from ..reference import quat_to_rotmat
 from .scaffold import ndc_grad_norms
 
 # The schedule's steps are stated for 3DGS's 30k-step runs.
 _REFERENCE_ITERATIONS = 30_000
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """[N, 3, 3] rotation matrices of w-first quaternions [N, 4] (normalised here)."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=1).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(-1, 3, 3)
 
 
 @dataclasses.dataclass
