@@ -192,6 +192,10 @@ class SecureConfig:
     bit_margin: after every step each anchor feature is moved the least distance that makes its
         vote's logit agree with its bit by this much (secure/keyed_bits.py; 1: sigmoid 0.73). The
         bits live in the public anchor features, so a larger margin costs the cover fidelity.
+    bit_cell_voxels: the edge, in base voxels, of the keyed grid whose cells deal the anchors among
+        the bits (the key stores the edge in scene units): an anchor keeps its bit while its position
+        moves by less than its distance to a cell face, so a coarser grid survives larger position
+        changes (quantisation, float16, noise) and a finer one gives each bit more independent voters.
     hdger: the paper's hybrid decoupled Gaussian encryption: hidden offsets come from the private
         MLP F_o†; False ("w/o HDGER", an ablation) stores explicit hidden offsets per anchor, which
         cannot be released.
@@ -215,6 +219,7 @@ class SecureConfig:
     hidden_scaling_grad: float = 1.0
     feature_grad_until: float = 1.0
     bit_margin: float = 1.0
+    bit_cell_voxels: float = 4.0
     hdger: bool = True
     robust: str | None = None
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
@@ -242,6 +247,8 @@ class SecureConfig:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {self.hidden_weight}")
         if not self.bit_margin > 0.0:
             raise ValueError(f"bit_margin must be > 0, got {self.bit_margin}")
+        if not self.bit_cell_voxels > 0.0:
+            raise ValueError(f"bit_cell_voxels must be > 0, got {self.bit_cell_voxels}")
         for name, meaning in (("hidden_feature_grad", "a share of a gradient"),
                               ("hidden_scaling_grad", "a share of a gradient"),
                               ("feature_grad_until", "a fraction of the run")):

@@ -65,6 +65,9 @@ SECURE_FLAGS = (
      "closer to plain Scaffold-GS; the paper's 1)"),
     ("--bit-margin", "secure.bit_margin", "logit margin by which every anchor's vote must agree with its bit (the "
                                           "bits live in the public anchor features: higher costs the cover)"),
+    ("--bit-cell", "secure.bit_cell_voxels", "edge of the keyed grid cells that deal anchors among the bits, in "
+                                             "voxels (larger: bits survive larger position changes; smaller: more "
+                                             "independent voters per bit)"),
     ("--r-down", "secure.strategy.r_down", "RDO: the public growth threshold is divided by this inside the hidden "
                                           "object's box (everywhere with --mode global)"),
     ("--hidden-every", "secure.strategy.hidden_every", "RDO: accumulate ∇_hid every N steps (larger grows fewer "

@@ -31,11 +31,6 @@ _DOMAIN = b"securegs-warp keyed bit decoder v1"
 # Logits are LOGIT_SCALE times the projection of a feature on a unit-length direction: a margin of
 # 1 (SecureConfig.bit_margin) puts a feature 0.1 past the decision plane.
 LOGIT_SCALE = 10.0
-# The edge of the keyed grid whose cells deal the anchors among the bits, in base voxels of the
-# anchor grid: an anchor keeps its bit while its position moves by less than its distance to a cell
-# face, so a coarser grid survives larger position changes (quantisation, float16, position noise),
-# and a finer one gives each bit more independent cells to vote.
-BIT_CELL_VOXELS = 4.0
 
 
 def new_seed() -> str:

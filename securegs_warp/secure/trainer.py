@@ -19,7 +19,7 @@ from ..data import Camera, SceneData
 from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
-from .keyed_bits import BIT_CELL_VOXELS, new_seed
+from .keyed_bits import new_seed
 from .model import SecureModel
 from .payload import Payload, build_payload, message_string, parse_secrets
 from .robust import parse_robust, perturb, public_opacity
@@ -76,7 +76,7 @@ class SecureTrainer(ScaffoldTrainer):
         return self.payloads[0]
 
     def _make_model(self, anchors, heads) -> SecureModel:
-        bit_cell = BIT_CELL_VOXELS * anchors.voxel_size
+        bit_cell = self.secure.bit_cell_voxels * anchors.voxel_size
         secrets = [self._make_private(heads, p, seed, bit_cell).to(anchors.xyz.device)
                    for p, seed in zip(self.payloads, self.bit_seeds)]
         if not self.secure.hdger and any(p.has_images for p in self.payloads):
