@@ -136,8 +136,14 @@ class StegaNeRFConfig:
     the appearance move least (the authors' adaptive gradient masking; their power is a flag,
     n_power_softw, default unknown here: 1). color_lr: Adam's learning rate for the SH
     coefficients (3DGS's; the paper's grid optimiser has no counterpart). decoder_lr,
-    decoder_width: the U-Net's and classifier's Adam learning rate and first-level width (not in
-    the paper's text; small enough for the CPU).
+    classifier_lr: the U-Net's and the classifier's Adam learning rates at the start, decayed
+    exponentially to a tenth by the last step (the authors' lr_unet 1e-3 -> 1e-4, lr_class
+    1e-4 -> 1e-5). decoder_width: the U-Net's and classifier's first-level width (the authors'
+    VGG16 has 64; 16 trains on a CPU). decoder_levels, decoder_size: the U-Net's resolutions and
+    the square size it reads the render at (the authors' VGG16 U-Net: 5 and wm_resize 128). The
+    size must be fixed and the bottleneck must see the whole picture: a 3-level U-Net at the
+    view's own size (decoder_levels 3, decoder_size 0) learns only the hidden image's mean colour
+    (docs/results.md, "StegaNeRF: what it needs to learn").
     """
 
     iterations: int = 600
@@ -152,6 +158,9 @@ class StegaNeRFConfig:
     color_lr: float = 0.0025
     decoder_lr: float = 0.001
     decoder_width: int = 16
+    decoder_levels: int = 5
+    decoder_size: int = 128
+    classifier_lr: float = 0.0001
 
     def __post_init__(self):
         if self.iterations < 1:
@@ -162,8 +171,12 @@ class StegaNeRFConfig:
             raise ValueError(f"tune must be 'color' or 'all', got {self.tune!r}")
         if self.decoder_width < 1:
             raise ValueError(f"decoder_width must be >= 1, got {self.decoder_width}")
+        if self.decoder_levels < 1:
+            raise ValueError(f"decoder_levels must be >= 1, got {self.decoder_levels}")
+        if self.decoder_size < 0:
+            raise ValueError(f"decoder_size must be >= 0 (0: the view's size), got {self.decoder_size}")
         for name in ("rgb_weight", "hidden_weight", "clean_weight", "classifier_weight", "masking_power",
-                     "color_lr", "decoder_lr"):
+                     "color_lr", "decoder_lr", "classifier_lr"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 

@@ -40,26 +40,40 @@ def _conv_block(c_in: int, c_out: int) -> nn.Sequential:
 
 
 class StegaDecoder(nn.Module):
-    """A three-level U-Net: a render [B, 3, H, W] and the classifier's belief [B] (as a constant
-    fourth input channel: StegaNeRF's classifier-guided recovery) -> an image [B, 3, H, W] in
-    [0, 1]. Any H, W (skips are resized to match). The authors use a VGG16 U-Net; this one has
-    ``width``, 2·width and 4·width channels so that it trains on a CPU."""
+    """A U-Net: a render [B, 3, H, W] and the classifier's belief [B] (as a constant fourth input
+    channel: StegaNeRF's classifier-guided recovery) -> an image [B, 3, H, W] in [0, 1].
 
-    def __init__(self, width: int = 16):
+    The render is first resized to ``size``² and the U-Net works there (``levels`` resolutions,
+    ``width``·2^l channels at level l), its output resized back to H, W: as the authors' decoder,
+    which reads a 128² copy of the render. A fixed working size with a bottleneck that sees the
+    whole picture is what lets the decoder draw the hidden image at the right place in every view
+    (where the hidden image is, is known to the network only through its receptive field reaching
+    the borders); at the view's own size the receptive field covers a patch, and the decoder can
+    learn no more than the hidden image's mean colour. ``size`` 0 works at the view's size."""
+
+    def __init__(self, width: int = 16, levels: int = 3, size: int = 0):
         super().__init__()
-        self.enc1, self.enc2, self.enc3 = _conv_block(4, width), _conv_block(width, 2 * width), _conv_block(
-            2 * width, 4 * width)
-        self.dec2, self.dec1 = _conv_block(6 * width, 2 * width), _conv_block(3 * width, width)
+        self.size = size
+        widths = [width * 2 ** level for level in range(levels)]
+        self.encoders = nn.ModuleList(_conv_block(c_in, c_out) for c_in, c_out in zip([4] + widths[:-1], widths))
+        self.decoders = nn.ModuleList(_conv_block(widths[level + 1] + widths[level], widths[level])
+                                      for level in reversed(range(levels - 1)))
         self.out = nn.Conv2d(width, 3, 1)
 
     def forward(self, image: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
         b, _, h, w = image.shape
-        e1 = self.enc1(torch.cat([image, belief.view(b, 1, 1, 1).expand(b, 1, h, w)], dim=1))
-        e2 = self.enc2(F.avg_pool2d(e1, 2, ceil_mode=True))
-        e3 = self.enc3(F.avg_pool2d(e2, 2, ceil_mode=True))
-        d2 = self.dec2(torch.cat([F.interpolate(e3, size=e2.shape[-2:], mode="bilinear", align_corners=False), e2], 1))
-        d1 = self.dec1(torch.cat([F.interpolate(d2, size=(h, w), mode="bilinear", align_corners=False), e1], 1))
-        return torch.sigmoid(self.out(d1))
+        if self.size:
+            image = F.interpolate(image, size=(self.size, self.size), mode="bilinear", align_corners=False)
+        x = torch.cat([image, belief.view(b, 1, 1, 1).expand(b, 1, *image.shape[-2:])], dim=1)
+        skips = []
+        for level, encoder in enumerate(self.encoders):
+            x = encoder(x if level == 0 else F.avg_pool2d(x, 2, ceil_mode=True))
+            skips.append(x)
+        for decoder, skip in zip(self.decoders, reversed(skips[:-1])):
+            x = decoder(torch.cat([F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False),
+                                   skip], 1))
+        x = torch.sigmoid(self.out(x))
+        return x if x.shape[-2:] == (h, w) else F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
 
 
 class StegaClassifier(nn.Module):
@@ -113,14 +127,15 @@ class StegaNeRF:
         for name, p in self.model.named_parameters():
             p.requires_grad_(tuned is None or name in tuned)
         torch.manual_seed(seed)  # decoder and classifier initialisation
-        self.decoder = StegaDecoder(config.decoder_width).to(self.device)
+        self.decoder = StegaDecoder(config.decoder_width, config.decoder_levels, config.decoder_size).to(self.device)
         self.classifier = StegaClassifier(config.decoder_width).to(self.device)
         lr = {name: config.color_lr for name in COLOR_PARAMS}
         lr.update({"means": 0.0, "log_scales": 0.005, "quats": 0.001, "opacity_logits": 0.05})  # 3DGS's, tune=all
         self.optimizer = torch.optim.Adam([{"params": [p], "lr": lr[name], "name": name}
                                            for name, p in self.model.named_parameters() if p.requires_grad], eps=1e-15)
         self.decoder_optimizer = torch.optim.Adam(
-            list(self.decoder.parameters()) + list(self.classifier.parameters()), lr=config.decoder_lr)
+            [{"params": list(self.decoder.parameters()), "lr": config.decoder_lr, "name": "decoder"},
+             {"params": list(self.classifier.parameters()), "lr": config.classifier_lr, "name": "classifier"}])
         self.sh_weights = (sh_gradient_weights(self.model, config.masking_power)
                            if config.gradient_masking and self.model.sh_degree is not None else None)
         self.generator = torch.Generator().manual_seed(seed)
@@ -167,6 +182,10 @@ class StegaNeRF:
         if self.sh_weights is not None:
             self.model.features_dc.grad *= self.sh_weights[0]
             self.model.features_rest.grad *= self.sh_weights[1:, None]
+        # The authors decay both networks' rates exponentially by 10x over the run.
+        decay = 0.1 ** (self.step_count / c.iterations)
+        for group in self.decoder_optimizer.param_groups:
+            group["lr"] = decay * (c.decoder_lr if group["name"] == "decoder" else c.classifier_lr)
         self.optimizer.step()
         self.decoder_optimizer.step()
         self.step_count += 1
