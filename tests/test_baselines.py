@@ -89,6 +89,9 @@ def test_key_round_trip_and_bad_key(scene, cover, tmp_path):
         other.load_key(tmp_path / "bad")
     with pytest.raises(ValueError, match="not a key for this decoder"):
         _stega(scene, cover, decoder_width=8).load_key(tmp_path / "key.safetensors")
+    with pytest.raises(ValueError, match="decoder_size"):  # same weights' shapes, another input size
+        _stega(scene, cover, decoder_size=64).load_key(tmp_path / "key.safetensors")
+    assert (tmp_path / "key.safetensors").stat().st_mode & 0o077 == 0  # readable by its owner only
     with pytest.raises(ValueError, match="hidden image must be"):
         StegaNeRF(cover.model, scene, torch.zeros(5, 5, 3), StegaNeRFConfig())
     with pytest.raises(ValueError, match="rgb_target"):

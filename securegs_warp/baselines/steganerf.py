@@ -28,7 +28,7 @@ from torch import nn
 from .. import evaluation
 from ..config import StegaNeRFConfig
 from ..gaussians import GaussianModel
-from ..io.atomic import atomic_write
+from ..keys import write_private
 from ..rasterizer import RasterOptions
 
 COLOR_PARAMS = ("features_dc", "features_rest")
@@ -218,32 +218,40 @@ class StegaNeRF:
 
     # -- release and key ------------------------------------------------------------------------
 
-    def save_release(self, path: str | os.PathLike) -> None:
-        """The fine-tuned scene as a standard 3DGS PLY."""
-        self.model.save_ply(path)
-
     def key_tensors(self) -> dict[str, torch.Tensor]:
         return {**{f"decoder.{k}": v for k, v in self.decoder.state_dict().items()},
                 **{f"classifier.{k}": v for k, v in self.classifier.state_dict().items()}}
 
+    def key_shape(self) -> dict[str, str]:
+        """The decoder's shape as the key records it: what a reader must build to load the weights."""
+        c = self.config
+        return {"decoder_width": str(c.decoder_width), "decoder_levels": str(c.decoder_levels),
+                "decoder_size": str(c.decoder_size)}
+
     def save_key(self, path: str | os.PathLike) -> None:
-        """The decoder and classifier as a safetensors file (tensors only: loading runs no code)."""
+        """The decoder and classifier as a safetensors file (tensors only: loading runs no code),
+        readable by its owner only, like every key of the project."""
         from safetensors.torch import save
 
         data = save({k: v.detach().cpu().contiguous() for k, v in self.key_tensors().items()},
-                    metadata={"method": "3dgs+steganerf", "decoder_width": str(self.config.decoder_width)})
-        atomic_write(path, lambda f: f.write(data))
+                    metadata={"method": "3dgs+steganerf", **self.key_shape()})
+        write_private(path, data)
 
     def load_key(self, path: str | os.PathLike) -> None:
         """Read a key written by :meth:`save_key` into the decoder and classifier; ValueError naming
-        the file when it is not one (or of another width)."""
-        from safetensors import SafetensorError
-        from safetensors.torch import load
+        the file when it is not one, or of another decoder shape."""
+        from safetensors import SafetensorError, safe_open
 
         try:
-            tensors = load(open(path, "rb").read())
+            with safe_open(str(path), framework="pt", device="cpu") as f:
+                metadata = f.metadata() or {}
+                tensors = {k: f.get_tensor(k) for k in f.keys()}
         except (OSError, SafetensorError) as e:
             raise ValueError(f"{path}: not a StegaNeRF key ({e})") from None
+        shape = self.key_shape()
+        differ = [f"{k} {metadata.get(k)} (this decoder: {v})" for k, v in shape.items() if metadata.get(k) != v]
+        if metadata.get("method") != "3dgs+steganerf" or differ:
+            raise ValueError(f"{path}: not a key for this decoder ({'; '.join(differ) or 'another method'})")
         for prefix, module in (("decoder.", self.decoder), ("classifier.", self.classifier)):
             part = {k[len(prefix):]: v.to(self.device) for k, v in tensors.items() if k.startswith(prefix)}
             try:
