@@ -53,7 +53,7 @@ from ..io.atomic import atomic_write
 from ..io.gs_ply import PlyFormatError, read_vertex_ply, vertex_columns, write_vertex_ply
 from ..keys import KeyFileError, container_fingerprint, load_key, save_key
 from ..rasterizer import RasterOptions
-from ..secure.container import PLAIN_KEY, PUBLIC_DIR, SEALED_KEY
+from ..secure.container import PUBLIC_DIR, default_key_path, remove_stale_key
 from ..secure.payload import Payload, PayloadSpec, build_payload
 from ..train.gaussians import GaussianTrainer
 from ..train.losses import psnr
@@ -158,8 +158,8 @@ class GSHiderModel(GaussianModel):
         public.mkdir(parents=True, exist_ok=True)
         write_feature_ply(public / PLY_FILE, self)
         write_decoder(public / SCENE_DECODER_FILE, self.scene_decoder, self.feature_background)
-        key = folder / (SEALED_KEY if passphrase else PLAIN_KEY)
-        (folder / (PLAIN_KEY if passphrase else SEALED_KEY)).unlink(missing_ok=True)  # no stale key of the other kind
+        key = default_key_path(folder, passphrase)
+        remove_stale_key(folder, passphrase)
         tensors = {_KEY_PREFIX + name: t.detach() for name, t in self.message_decoder.state_dict().items()}
         save_key(key, tensors, {**(metadata or {}), "gs_hider": self.message_decoder.shape},
                  decoder_fingerprint(self.scene_decoder), passphrase)

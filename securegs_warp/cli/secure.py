@@ -24,7 +24,7 @@ from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
-from ..secure.container import PLAIN_KEY, PUBLIC_DIR, SEALED_KEY, KeyFile, KeyViews, open_container, save_container
+from ..secure.container import PUBLIC_DIR, KeyFile, KeyViews, default_key_path, open_container, save_container
 from ..secure.payload import SECRET_SEPARATOR, describe_secrets, parse_secrets
 from ..secure.trainer import secret_suffix
 from ..secure.security import exposure
@@ -158,7 +158,7 @@ def secret_options(args) -> list[SecretOptions]:
 
 def _check_key_paths(args, secrets: list[SecretOptions]) -> None:
     out = Path(args.out).resolve()
-    first_default = out / (SEALED_KEY if secrets[0].passphrase else PLAIN_KEY)
+    first_default = default_key_path(out, secrets[0].passphrase)
     paths = [first_default if s.key_out is None else s.key_out.resolve() for s in secrets]
     for i, path in enumerate(paths):
         if path in paths[:i]:

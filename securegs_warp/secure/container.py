@@ -31,6 +31,17 @@ PLAIN_KEY, SEALED_KEY = "key.safetensors", "key.sealed"
 _PREFIX = "private."
 
 
+def default_key_path(folder: str | Path, passphrase: str | None) -> Path:
+    """Where a key goes beside a release folder when no path is given: sealed or plain by name."""
+    return Path(folder) / (SEALED_KEY if passphrase else PLAIN_KEY)
+
+
+def remove_stale_key(folder: str | Path, passphrase: str | None) -> None:
+    """Remove the default key of the other kind, so that a folder never holds a plain and a sealed
+    key of two different runs."""
+    default_key_path(folder, not passphrase).unlink(missing_ok=True)
+
+
 def release_fingerprint(heads: ScaffoldHeads) -> str:
     """Fingerprint of a release: its public MLP weights (unchanged by point-cloud degradations)."""
     return container_fingerprint({k: v.detach() for k, v in heads.state_dict().items()})
@@ -59,14 +70,14 @@ def save_container(out: str | Path, model: SecureModel, keys: list[KeyFile]) -> 
                              "mode and cannot be released as a container")
     out = Path(out)
     public = out / PUBLIC_DIR
-    paths = [Path(k.path) if k.path is not None else out / (SEALED_KEY if k.passphrase else PLAIN_KEY) for k in keys]
+    paths = [Path(k.path) if k.path is not None else default_key_path(out, k.passphrase) for k in keys]
     if len({p.resolve() for p in paths}) != len(paths):
         raise ValueError("two secrets' keys would be written to the same file: give each its own path")
     save_scaffold(public, model.anchors, model.heads)
     fingerprint = release_fingerprint(model.heads)
     for private, key, path in zip(model.secrets, keys, paths):
-        if key.path is None:  # no stale key of the other kind beside the default one
-            (out / (PLAIN_KEY if key.passphrase else SEALED_KEY)).unlink(missing_ok=True)
+        if key.path is None:
+            remove_stale_key(out, key.passphrase)
         tensors = {_PREFIX + name: value.detach() for name, value in private.state_dict().items()}
         save_key(path, tensors, {**key.metadata, "heads": private.describe()}, fingerprint, key.passphrase)
     return public, paths
