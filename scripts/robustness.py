@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from securegs_warp.cli import main as securegs
-from securegs_warp.cli.common import quiet_warp
+from securegs_warp.cli.common import quiet_warp, resolve_device
 from securegs_warp.config import RunConfig, from_dict
 from securegs_warp.robustness import SWEEP, plot_sweep, sweep, write_sweep
 from securegs_warp.runs import RunFolder
@@ -33,15 +33,16 @@ def main():
     ap.add_argument("--attacks", default=",".join(SWEEP), help=f"attacks to sweep (default: all: {','.join(SWEEP)})")
     ap.add_argument("--seed", type=int, default=0, help="random source of the attacks")
     ap.add_argument("--out", default="runs/robustness")
+    ap.add_argument("--device", help="where to render and attack (default: CUDA when present, else the CPU)")
     args = ap.parse_args()
-    torch.set_num_threads(1)
+    device = resolve_device(args.device)
     quiet_warp()
     out = Path(args.out)
     runs = [Path(r) for r in args.runs]
     if not runs:
         runs = [out / "container"]
         if securegs(["hide", "--payload", "object+bits:48", "--iterations", "400", "--out", str(runs[0]), "--quiet",
-                     "--device", "cpu", *(["--resume"] if (runs[0] / "config.json").is_file() else [])]) != 0:
+                     "--device", str(device), *(["--resume"] if (runs[0] / "config.json").is_file() else [])]) != 0:
             raise SystemExit("training the container failed")
     labels = args.labels.split(",") if args.labels else [r.name for r in runs]
     if len(labels) != len(runs):
@@ -55,10 +56,10 @@ def main():
     scene = configs[0].scene.load()
     models, views = {}, {}
     for label, run in zip(labels, runs):
-        models[label], meta = open_container(run / "public", run / PLAIN_KEY)
-        views[label] = KeyViews.from_metadata(meta, "cpu")
+        models[label], meta = open_container(run / "public", run / PLAIN_KEY, device=device)
+        views[label] = KeyViews.from_metadata(meta, device)
     meta = {"runs": [str(r) for r in runs], "labels": labels, "seed": args.seed, "date": time.strftime("%Y-%m-%d"),
-            "device": "cpu"}
+            "device": str(device)}
     rows = []
 
     def report(row):

@@ -89,7 +89,12 @@ def test_cover_mode_grows_no_anchor_for_the_hidden_object(scene):
     assert (private.frame, private.n_offsets, private.width, private.serving) == ("box", 4, 16, 50)
     out = trainer.render_hidden(scene.train[0], 0)
     g = out["gaussians"]
-    assert int(g["visible_mask"].sum()) == 50 and g["neural_opacity"].shape[0] == 50 * 4
+    # The 50 anchors nearest the box serve, and any tied with the 50th (anchors sit on a voxel grid).
+    distance = private.box_distance(trainer.model.anchors.xyz)
+    assert float(private.serving_radius) == float(distance.kthvalue(50).values)
+    serving = int((distance <= private.serving_radius).sum())
+    assert 50 <= serving < 60
+    assert int(g["visible_mask"].sum()) == serving and g["neural_opacity"].shape[0] == serving * 4
     lo, hi = private.box[0] - private.box[1], private.box[0] + private.box[1]
     assert ((g["means"] >= lo - 1e-5) & (g["means"] <= hi + 1e-5)).all()
 
@@ -104,6 +109,37 @@ def test_box_frame_options_are_in_the_key_and_reveal_rebuilds_them(tmp_path):
     revealed = tmp_path / "r"
     assert main(["reveal", str(out / "public"), "--key", str(out / "key.safetensors"), "--out", str(revealed)]) == 0
     assert any(p.name.startswith("hidden_") for p in (revealed / "renders").iterdir())
+
+
+def test_a_pruned_release_is_decoded_by_its_surviving_serving_anchors_only(tmp_path):
+    """The key bounds the serving anchors by a radius: pruning some leaves the survivors serving and
+    draws in none that the key never trained (a count would take the next nearest)."""
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
+                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", *TINY]) == 0
+    pruned = tmp_path / "pruned"
+    assert main(["attack", str(out / "public"), "--key", str(out / "key.safetensors"), "--attack", "prune-random:0.5",
+                 "--out", str(pruned)]) == 0
+    model, _ = open_container(out / "public", out / "key.safetensors")
+    attacked, _ = open_container(pruned, out / "key.safetensors")
+    before = {tuple(p) for p in model.anchors.xyz[model.private.serving_mask(model.anchors.xyz)].tolist()}
+    after = {tuple(p) for p in attacked.anchors.xyz[attacked.private.serving_mask(attacked.anchors.xyz)].tolist()}
+    assert len(before) >= 40 and after < before and len(after) < 0.8 * len(before)
+
+
+def test_a_key_that_counted_its_serving_anchors_is_refused_by_name(tmp_path):
+    from securegs_warp.keys import KeyFileError, load_key, save_key
+    from securegs_warp.secure.container import release_fingerprint
+
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "2", "--quiet", "--payload", "object", "--mode", "cover",
+                 *TINY]) == 0
+    tensors, metadata = load_key(out / "key.safetensors")
+    del tensors["private.serving_radius"]
+    model, _ = open_container(out / "public", out / "key.safetensors")
+    save_key(out / "old.safetensors", tensors, metadata, release_fingerprint(model.heads))
+    with pytest.raises(KeyFileError, match="serving anchors were counted"):
+        open_container(out / "public", out / "old.safetensors")
 
 
 def test_audit_command_prints_one_json_object(tmp_path, capsys):

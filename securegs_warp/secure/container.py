@@ -106,6 +106,10 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
     if "bit_seed" in metadata.get("heads", {}) and "bit_cell" not in metadata["heads"]:
         raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose bits were dealt by exact anchor positions; "
                            "hide the payload again to get a key this version reads")
+    described = metadata.get("heads", {})
+    if described.get("frame") == "box" and described.get("serving", 0) > 0 and _PREFIX + "serving_radius" not in tensors:
+        raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose serving anchors were counted rather than "
+                           "bounded by a radius; hide the payload again to get a key this version reads")
     try:
         private = PrivateHeads(heads, **metadata["heads"]).to(device)
         private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})

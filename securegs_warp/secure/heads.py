@@ -37,12 +37,16 @@ class PrivateHeads(nn.Module):
         "box": c + h ⊙ tanh(F_o†(f̂_v, (x_v − c) / h)), anywhere in the key's box (``box``: centre c
             [3] and half-extent h [3], world units; F_o† reads the anchor's position in the box's
             frame instead of the view direction, so the hidden geometry is the same from every view).
-            Only the ``serving`` anchors nearest the box decode hidden Gaussians; they are the
-            cover's own anchors, wherever the cover put them.
+            Only the anchors within ``serving_radius`` of the box decode hidden Gaussians; they are
+            the cover's own anchors, wherever the cover put them.
     n_hidden: k_hid, hidden Gaussians per anchor (None: the public k).
     width: hidden width of the private MLPs (None: d).
-    serving: the number of anchors, nearest the box first, that decode hidden Gaussians in the box
-        frame (0: every anchor that the view shows).
+    serving: in the box frame, how many anchors, nearest the box first, decode hidden Gaussians (0:
+        every anchor that the view shows). Training keeps ``serving_radius`` (a buffer, world units,
+        saved in the key) at the distance from the box of the serving-th nearest anchor
+        (``fix_serving``); decoding reads the radius, not the count, so a release that lost anchors
+        decodes with the survivors and no anchor the key never trained is drawn in to make up the
+        number (it would paint its own Gaussians into the box).
     """
 
     def __init__(self, public: ScaffoldHeads, *, message: str | None = None, bit_seed: str | None = None,
@@ -65,6 +69,7 @@ class PrivateHeads(nn.Module):
         self.offset_mlp = make_mlp(d + 3, w, 3 * k) if hidden and offsets else None
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
+            self.register_buffer("serving_radius", torch.tensor(float("inf")))
         self.bits = None
         self.set_message(message, bit_seed, bit_cell)
 
@@ -94,17 +99,29 @@ class PrivateHeads(nn.Module):
         lo, hi = (torch.as_tensor(v, dtype=torch.float32, device=self.box.device) for v in (lo, hi))
         self.box.copy_(torch.stack([0.5 * (lo + hi), (0.5 * (hi - lo)).clamp_min(1e-6)]))
 
+    def box_distance(self, xyz: torch.Tensor) -> torch.Tensor:
+        """[N] distance of anchor positions [N, 3] from the box (0 inside)."""
+        return ((xyz - self.box[0]).abs() - self.box[1]).clamp_min(0.0).norm(dim=1)
+
+    @torch.no_grad()
+    def fix_serving(self, xyz: torch.Tensor) -> None:
+        """Set ``serving_radius`` so that the ``serving`` anchors nearest the box, of the anchor
+        positions [N, 3] being trained, decode (with any tied with the last; all of them when there
+        are fewer). Nothing to do outside the box frame or with ``serving`` 0."""
+        if self.frame != "box" or self.serving <= 0:
+            return
+        distance = self.box_distance(xyz)
+        self.serving_radius.copy_(distance.kthvalue(min(self.serving, len(distance))).values
+                                  if len(distance) else torch.tensor(float("inf")))
+
     @torch.no_grad()
     def serving_mask(self, xyz: torch.Tensor) -> torch.Tensor | None:
-        """[N] bool, the anchors that decode hidden Gaussians in the box frame (the ``serving``
-        nearest the box, by distance to it: 0 inside), from anchor positions [N, 3]; None in the
-        anchor frame or with ``serving`` 0 (the view's visible anchors decode)."""
+        """[N] bool, the anchors that decode hidden Gaussians in the box frame: those within
+        ``serving_radius`` of the box, from anchor positions [N, 3]; None in the anchor frame or
+        with ``serving`` 0 (the view's visible anchors decode)."""
         if self.frame != "box" or self.serving <= 0:
             return None
-        outside = ((xyz - self.box[0]).abs() - self.box[1]).clamp_min(0.0).norm(dim=1)
-        mask = torch.zeros(len(xyz), dtype=torch.bool, device=xyz.device)
-        mask[outside.topk(min(self.serving, len(xyz)), largest=False).indices] = True
-        return mask
+        return self.box_distance(xyz) <= self.serving_radius
 
     def bit_logits(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-anchor bit logits [N] and the bit each anchor votes on [N] (int64), from anchor

@@ -79,6 +79,8 @@ class SecureTrainer(ScaffoldTrainer):
         bit_cell = self.secure.bit_cell_voxels * anchors.voxel_size
         secrets = [self._make_private(heads, p, seed, bit_cell).to(anchors.xyz.device)
                    for p, seed in zip(self.payloads, self.bit_seeds)]
+        for private in secrets:
+            private.fix_serving(anchors.xyz)
         if not self.secure.hdger and any(p.has_images for p in self.payloads):
             anchors.add_hidden_offsets()
         return SecureModel(anchors, heads, secrets)
@@ -151,10 +153,14 @@ class SecureTrainer(ScaffoldTrainer):
 
     @torch.no_grad()
     def after_update(self) -> None:
-        """Move each anchor feature the least distance that makes its vote agree with its bit of
-        every message by bit_margin (a projection, not a loss: a loss's gradient goes through Adam,
-        which turns it into steps of the learning rate on every coordinate and cost the cover
-        0.3-1.2 dB; the projection moves a feature along one direction, only as far as needed)."""
+        """Refit each box-frame key's serving radius to the anchors densification left
+        (``PrivateHeads.fix_serving``), then move each anchor feature the least distance that makes
+        its vote agree with its bit of every message by bit_margin (a projection, not a loss: a
+        loss's gradient goes through Adam, which turns it into steps of the learning rate on every
+        coordinate and cost the cover 0.3-1.2 dB; the projection moves a feature along one
+        direction, only as far as needed)."""
+        for private in self.model.secrets:
+            private.fix_serving(self.model.anchors.xyz)
         decoders = [private.bits for private in self.model.secrets if private.bits is not None]
         if not decoders:
             return
