@@ -215,7 +215,8 @@ class SecureConfig:
     robust: attacks the hidden branch trains against, joined with + (``secure.robust``:
         ``prune-random:F``, ``noise-xyz:S``, ``noise-feat:S``, ``quantize:B``; strengths drawn each
         step up to the given value); None: none. The public branch is untouched.
-    strategy: the region-aware density strategy and its mode (rdo, scaffold, global, shared, cover).
+    strategy: the region-aware density strategy and its mode (rdo, scaffold, global, shared, cover;
+        None: ``strategy_mode`` chooses).
     hidden_frame: where the private F_o† places hidden Gaussians (``PrivateHeads``): "anchor" (the
         paper: near their anchor) or "box" (anywhere in the hidden object's box, decoded from the
         cover's anchors nearest it); None: "box" for an object with the "cover" mode, "anchor"
@@ -241,11 +242,21 @@ class SecureConfig:
     hidden_width: int | None = None
     hidden_anchors: int | None = None
 
-    def private_options(self, kind: str | None) -> dict:
+    def strategy_mode(self, kinds) -> str:
+        """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):
+        ``strategy.mode`` when given, else "cover" when one of them is an object (the paper's RDO grows
+        anchors on the hidden surface, so the public anchor cloud draws the object: docs/results.md,
+        "Geometric security") and "rdo" for images, scenes and bits, which have no surface of their
+        own to keep out of the cloud."""
+        if self.strategy.mode is not None:
+            return self.strategy.mode
+        return "cover" if "object" in kinds else "rdo"
+
+    def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
-        serving) for a secret hiding ``kind`` (a ``PayloadSpec.kind``), with the frame's defaults
-        filled in."""
-        frame = self.hidden_frame or ("box" if self.strategy.mode == "cover" and kind == "object" else "anchor")
+        serving) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of density ``mode``
+        (``strategy_mode``), with the frame's defaults filled in."""
+        frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {"n_hidden": None, "width": None, "serving": 0}
         given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors}
         return {"frame": frame, **{name: defaults[name] if value is None else value for name, value in given.items()}}

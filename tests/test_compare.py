@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from securegs_warp.compare import RegionErrors, parse_variant, release_mb
-from securegs_warp.config import SecureConfig
+from securegs_warp.config import SecureConfig, apply_overrides
 from securegs_warp.data import Camera
 from securegs_warp.model import AnchorModel, ScaffoldHeads
 from securegs_warp.scaffold_model import ScaffoldModel
@@ -15,7 +15,7 @@ from securegs_warp.scaffold_model import ScaffoldModel
 def test_variant_sets_fields_by_name():
     base = SecureConfig(payload="object")
     label, config = parse_variant("rdo", base)
-    assert label == "SecureGS" and config == base
+    assert label == "SecureGS" and config == apply_overrides(base, {"strategy.mode": "rdo"})
     label, config = parse_variant("global:r_down=2:hidden_weight=1:hdger=false:strategy.hidden_growth_at=public", base)
     assert config.strategy.mode == "global" and config.strategy.r_down == 2.0 and config.hidden_weight == 1.0
     assert config.hdger is False and config.strategy.hidden_growth_at == "public" and config.payload == "object"

@@ -17,6 +17,8 @@ from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.strategies import RegionAwareStrategy
 from securegs_warp.train import TrainConfig
 
+RDO = RegionAwareStrategy(mode="rdo")  # the paper's density strategy (an object's default is the cover mode)
+
 CPU_RASTER = RasterOptions(tile_size=8)
 TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
 
@@ -29,7 +31,8 @@ def hidden_scene():
 @pytest.fixture(scope="module")
 def trained(hidden_scene):
     """A container hiding the mug and 48 bits, trained briefly with frequent RDO updates."""
-    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=60, raster=CPU_RASTER), SecureConfig(payload="object+bits:48"))
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=60, raster=CPU_RASTER),
+                            SecureConfig(payload="object+bits:48", strategy=RDO))
     s = trainer.strategy
     s.start_stat, s.update_from, s.update_interval, s.update_until = 0, 0, 10, 60
     s.dbscan_min_samples = 4
@@ -67,6 +70,16 @@ def test_object_payload_needs_hidden_views():
         SecureTrainer(scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(payload="object"))
 
 
+def test_density_mode_defaults_to_cover_for_an_object_and_rdo_otherwise(hidden_scene):
+    config = TrainConfig(iterations=2, raster=CPU_RASTER)
+    modes = {payload: SecureTrainer(hidden_scene, config, SecureConfig(payload=payload)).strategy.mode
+             for payload in ("object+bits:48", "image", "bits:16", "image,object")}
+    assert modes == {"object+bits:48": "cover", "image": "rdo", "bits:16": "rdo", "image,object": "cover"}
+    assert SecureTrainer(hidden_scene, config, SecureConfig(payload="object", strategy=RDO)).strategy.mode == "rdo"
+    with pytest.raises(ValueError, match="density mode must be one of"):
+        RegionAwareStrategy(mode="paper")
+
+
 def test_private_heads_mirror_public_shapes(trained):
     trainer, _ = trained
     public = {k: v.shape for k, v in trainer.model.heads.state_dict().items()}
@@ -101,7 +114,7 @@ def test_hidden_learnt_compares_the_render_with_a_flat_image(trained, hidden_sce
     the trained one does. For an image payload, whose emblem fills the frame, the flat image (not
     the bare background, 5 dB lower there) is what an untrained branch must be held against."""
     config = TrainConfig(iterations=60, raster=CPU_RASTER)
-    fresh = SecureTrainer(hidden_scene, config, SecureConfig(payload="object+bits:48"))
+    fresh = SecureTrainer(hidden_scene, config, SecureConfig(payload="object+bits:48", strategy=RDO))
     before, after = fresh.evaluate_hidden(), trained[0].evaluate_hidden()
     assert before["psnr_hidden_flat"] == pytest.approx(after["psnr_hidden_flat"])  # same targets
     assert before["hidden_learnt"] is False and after["hidden_learnt"] is True
@@ -257,7 +270,8 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
 
 
 def test_without_hdger_offsets_are_explicit_and_follow_growth(hidden_scene, tmp_path):
-    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, raster=CPU_RASTER), SecureConfig(payload="object", hdger=False))
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, raster=CPU_RASTER),
+                            SecureConfig(payload="object", hdger=False, strategy=RDO))
     s = trainer.strategy
     s.start_stat, s.update_from, s.update_interval, s.update_until = 0, 0, 10, 30
     assert trainer.model.private.offset_mlp is None
@@ -361,7 +375,7 @@ def test_hidden_gradient_statistic_is_per_unit_of_hidden_loss(hidden_scene, per_
     for weight in (1.0, 10.0):
         trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(
             payload="object", hidden_weight=weight,
-            strategy=RegionAwareStrategy(hidden_every=1, hidden_grad_per_lambda=per_lambda)))
+            strategy=RegionAwareStrategy(mode="rdo", hidden_every=1, hidden_grad_per_lambda=per_lambda)))
         trainer.step()
         accum[weight] = trainer.strategy_state["hid_grad_accum"]
     assert accum[1.0].sum() > 0
@@ -373,7 +387,7 @@ def test_hidden_growth_threshold_scale(hidden_scene, tau_scale):
     """Γ_hid grows at τ_fix · hidden_tau_scale: a mean ∇_hid of 1 grows anchors at the paper's
     τ_fix and none at τ_fix · 10⁴ = 2; values below 1 are refused."""
     trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(
-                            payload="object", strategy=RegionAwareStrategy(hidden_tau_scale=tau_scale)))
+                            payload="object", strategy=RegionAwareStrategy(mode="rdo", hidden_tau_scale=tau_scale)))
     state, rows, views = trainer.strategy_state, slice(0, 8 * trainer.model.anchors.n_offsets), 100.0
     state["hid_grad_denom"][rows] = views
     state["hid_grad_accum"][rows] = views
@@ -391,7 +405,7 @@ def test_hidden_opacity_in_pruning_statistic_is_switchable(hidden_scene):
     accum = {}
     for keeps in (True, False):
         trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(
-                                payload="object", strategy=RegionAwareStrategy(hidden_opacity_keeps=keeps)))
+                                payload="object", strategy=RegionAwareStrategy(mode="rdo", hidden_opacity_keeps=keeps)))
         trainer.step()
         accum[keeps] = trainer.strategy_state["opacity_accum"]
     assert (accum[True] >= accum[False]).all() and accum[True].sum() > accum[False].sum()

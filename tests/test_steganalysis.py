@@ -91,7 +91,7 @@ def test_cover_mode_grows_no_anchor_for_the_hidden_object(scene):
     g = out["gaussians"]
     # The 50 anchors nearest the box serve, and any tied with the 50th (anchors sit on a voxel grid).
     distance = private.box_distance(trainer.model.anchors.xyz)
-    assert float(private.serving_radius) == float(distance.kthvalue(50).values)
+    assert private.serving_radius.item() == distance.detach().kthvalue(50).values.item()
     serving = int((distance <= private.serving_radius).sum())
     assert 50 <= serving < 60
     assert int(g["visible_mask"].sum()) == serving and g["neural_opacity"].shape[0] == serving * 4

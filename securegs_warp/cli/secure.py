@@ -45,8 +45,9 @@ SECURE_FLAGS = (
                                                    "(world units; the room is 10 wide); replaces --placement"),
     ("--hidden-size", "scene.hidden_size", "synthetic scenes: the hidden object's largest side (world units)"),
     ("--hidden-yaw", "scene.hidden_yaw", "synthetic scenes: the hidden object's turn about the vertical, degrees"),
-    ("--mode", "secure.strategy.mode", "density strategy: rdo (the paper's), cover (the cover's own anchors "
-                                       "decode the hidden object: no anchor grows for it), or the ablations "
+    ("--mode", "secure.strategy.mode", "density strategy: cover (the cover's own anchors decode the hidden "
+                                       "object: no anchor grows for it; the default for an object), rdo (the "
+                                       "paper's; the default for images, scenes and bits), or the ablations "
                                        "scaffold, global, shared"),
     ("--hidden-frame", "secure.hidden_frame", "where the private heads place hidden Gaussians: anchor (near their "
                                               "anchor, the paper's) or box (anywhere in the object's box); default "

@@ -8,6 +8,7 @@ backward through all renders, then the region-aware strategy looks at every bran
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -63,9 +64,11 @@ class SecureTrainer(ScaffoldTrainer):
         # Each bit decoder's seed is secret like its message (not from the training seed, which
         # config.json records), drawn apart for every secret; a checkpoint keeps them.
         self.bit_seeds = [new_seed() if p.bits is not None else None for p in self.payloads]
-        strategy = secure.strategy.scaled_to(config.iterations)
+        strategy = dataclasses.replace(secure.strategy.scaled_to(config.iterations),
+                                       mode=secure.strategy_mode([p.spec.kind for p in self.payloads]))
         strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
                              and any(p.spec.kind in ("object", "image") for p in self.payloads))
+        self.strategy = strategy  # the private heads, built with the model, read its mode
         super().__init__(scene, config, device=device, strategy=strategy)
 
     @property
@@ -86,7 +89,7 @@ class SecureTrainer(ScaffoldTrainer):
         return SecureModel(anchors, heads, secrets)
 
     def _make_private(self, heads, payload: Payload, bit_seed: str | None, bit_cell: float) -> PrivateHeads:
-        options = self.secure.private_options(payload.spec.kind)
+        options = self.secure.private_options(payload.spec.kind, self.strategy.mode)
         private = PrivateHeads(heads, message=message_string(payload.bits), bit_seed=bit_seed,
                                bit_cell=None if payload.bits is None else bit_cell,
                                offsets=self.secure.hdger, hidden=payload.has_images, **options)

@@ -36,7 +36,8 @@ MODES = ("rdo", "scaffold", "global", "shared", "cover")
 
 @dataclasses.dataclass
 class RegionAwareStrategy(ScaffoldStrategy):
-    mode: str = "rdo"
+    # None: chosen by the payload (SecureConfig.strategy_mode): cover for a hidden object, rdo otherwise.
+    mode: str | None = None
     r_down: float = 4.0
     hidden_every: int = 2
     dbscan_eps_voxels: float = 12.0  # DBSCAN radius in base voxels
@@ -60,8 +61,8 @@ class RegionAwareStrategy(ScaffoldStrategy):
     anchor_state_keys = ScaffoldStrategy.anchor_state_keys + ("is_hidden",)
 
     def __post_init__(self):
-        if self.mode not in MODES:
-            raise ValueError(f"RDO mode must be one of {MODES}, got {self.mode!r}")
+        if self.mode is not None and self.mode not in MODES:
+            raise ValueError(f"the density mode must be one of {MODES}, got {self.mode!r}")
         if not self.r_down >= 1.0:
             raise ValueError(f"r_down must be >= 1 (it divides the growth threshold), got {self.r_down}")
         if self.hidden_every < 1:
