@@ -349,6 +349,11 @@ def test_mlp_shape_mismatch_is_named(tmp_path):
         load_scaffold(tmp_path)
 
 
+def test_a_folder_without_a_release_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"not a Scaffold-GS release \(no point_cloud.ply there"):
+        load_scaffold(tmp_path / "run")
+
+
 def test_pickled_objects_are_refused(tmp_path):
     path = tmp_path / "opacity_mlp.pt"
     torch.save({"0.weight": torch.zeros(2, 2), "payload": Evil()}, path)

@@ -238,11 +238,14 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
     bad = ["hide", "--out", str(tmp_path / "bad"), "--iterations", "2", "--quiet", "--payload", "object", *TINY]
     assert main(bad + ["--hidden-feature-grad", "2"]) == 2
     assert main(bad + ["--hidden-tau-scale", "0.5"]) == 2
+    assert main(bad + ["--hidden-scaling-grad", "-1"]) == 2
     assert not (tmp_path / "bad").exists()  # refused before the run folder is written
     assert main(["hide", "--out", str(out), "--iterations", "12", "--quiet", "--payload", "object+bits:8",
-                 "--passphrase-env", "KEYPASS", "--hidden-tau-scale", "4", "--hidden-feature-grad", "0.5", *TINY]) == 0
+                 "--passphrase-env", "KEYPASS", "--hidden-tau-scale", "4", "--hidden-feature-grad", "0.5",
+                 "--hidden-scaling-grad", "0", *TINY]) == 0
     record = json.loads((out / "config.json").read_text())["secure"]
-    assert (record["strategy"]["hidden_tau_scale"], record["hidden_feature_grad"]) == (4.0, 0.5)
+    assert (record["strategy"]["hidden_tau_scale"], record["hidden_feature_grad"], record["hidden_scaling_grad"]) == (
+        4.0, 0.5, 0.0)
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
                 "fps_hidden", "size_mb_public", "train_seconds", "psnr_hidden_flat", "hidden_learnt"):

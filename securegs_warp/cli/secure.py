@@ -64,6 +64,8 @@ SECURE_FLAGS = (
     ("--hidden-feature-grad", "secure.hidden_feature_grad",
      "share of the hidden loss's gradient reaching the public anchor features, 0 to 1 (lower: the cover stays "
      "closer to plain Scaffold-GS; the paper's 1)"),
+    ("--hidden-scaling-grad", "secure.hidden_scaling_grad",
+     "share of the hidden loss's gradient reaching the public anchor scalings, 0 to 1 (the paper's 1)"),
     ("--bit-margin", "secure.bit_margin", "logit margin by which every anchor's vote must agree with its bit (the "
                                           "bits live in the public anchor features: higher costs the cover)"),
     ("--bit-cell", "secure.bit_cell_voxels", "edge of the keyed grid cells that deal anchors among the bits, in "

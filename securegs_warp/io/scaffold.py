@@ -230,6 +230,9 @@ def load_scaffold(
         FileNotFoundError: a required file is missing.
     """
     directory = Path(directory)
+    if not (directory / POINT_CLOUD_FILE).is_file():
+        raise FileNotFoundError(f"{directory}: not a Scaffold-GS release (no {POINT_CLOUD_FILE} there; a run folder "
+                                "holds its release in model/ after `securegs train`, public/ after `securegs hide`)")
     model = _load_anchors(directory / POINT_CLOUD_FILE, voxel_size).to(device)
     d, k = model.feat_dim, model.n_offsets
 
