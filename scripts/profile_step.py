@@ -20,6 +20,7 @@ from securegs_warp.config import SecureConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure.trainer import SecureTrainer
+from securegs_warp.strategies import RegionAwareStrategy
 from securegs_warp.train import ScaffoldTrainer
 
 
@@ -34,6 +35,8 @@ def main():
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--hide", default="mug", help="the hidden object of the scene")
     parser.add_argument("--payload", default=SecureConfig().payload)
+    parser.add_argument("--mode", default="rdo", help="density mode of the SecureGS trainer (rdo: the paper's, "
+                                                      "as in docs/results.md's profiles; cover: an object's default)")
     parser.add_argument("--options", default="", help="rasterizer options on top of the device's, e.g. capture=true")
     parser.add_argument("--out", default=os.environ.get("OUT"), help="folder for profile_step.json and .md")
     args = parser.parse_args()
@@ -46,7 +49,8 @@ def main():
                                  n_train=args.train_views, n_test=1, device=args.device)
     config = TrainConfig(iterations=args.iterations, raster=raster)
     trainers = {"Scaffold-GS": ScaffoldTrainer(scene, config, device=args.device),
-                "SecureGS": SecureTrainer(scene, config, SecureConfig(payload=args.payload), device=args.device)}
+                "SecureGS": SecureTrainer(scene, config, SecureConfig(payload=args.payload,
+                                                                          strategy=RegionAwareStrategy(mode=args.mode)), device=args.device)}
     results = {}
     for label, trainer in trainers.items():
         for _ in range(args.warmup):

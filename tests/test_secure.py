@@ -246,6 +246,7 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
     record = json.loads((out / "config.json").read_text())["secure"]
     assert (record["strategy"]["hidden_tau_scale"], record["hidden_feature_grad"], record["hidden_scaling_grad"]) == (
         4.0, 0.5, 0.0)
+    assert record["strategy"]["mode"] == "cover"  # the mode the object chose, not "chosen by the payload"
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("psnr_public", "ssim_public", "psnr_hidden", "ssim_hidden", "bit_accuracy", "fps_public",
                 "fps_hidden", "size_mb_public", "train_seconds", "psnr_hidden_flat", "hidden_learnt"):

@@ -46,12 +46,12 @@ SECURE_FLAGS = (
     ("--hidden-size", "scene.hidden_size", "synthetic scenes: the hidden object's largest side (world units)"),
     ("--hidden-yaw", "scene.hidden_yaw", "synthetic scenes: the hidden object's turn about the vertical, degrees"),
     ("--mode", "secure.strategy.mode", "density strategy: cover (the cover's own anchors decode the hidden "
-                                       "object: no anchor grows for it; the default for an object), rdo (the "
-                                       "paper's; the default for images, scenes and bits), or the ablations "
-                                       "scaffold, global, shared"),
+                                       "object: no anchor grows for it; the default when a secret hides an "
+                                       "object, for every secret of the run), rdo (the paper's; the default "
+                                       "for images, scenes and bits), or the ablations scaffold, global, shared"),
     ("--hidden-frame", "secure.hidden_frame", "where the private heads place hidden Gaussians: anchor (near their "
                                               "anchor, the paper's) or box (anywhere in the object's box); default "
-                                              "box with --mode cover, anchor otherwise"),
+                                              "box for an object in the cover mode, anchor otherwise"),
     ("--hidden-offsets", "secure.hidden_offsets", "hidden Gaussians per anchor k_hid (default: 32 in the box frame, "
                                                   "the public 10 otherwise)"),
     ("--hidden-width", "secure.hidden_width", "hidden width of the private MLPs (default: 128 in the box frame, "
@@ -192,7 +192,10 @@ def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
             scene = dataclasses.replace(scene, hidden="mug" if kinds[0] == "object" else "scene")
     elif scene.hidden is not None:
         raise CommandError(f"--hide {scene.hidden}: payload {payload!r} hides no object or scene")
-    return dataclasses.replace(config, scene=scene)
+    # config.json records the mode the payload chose, so that a later default cannot change a resumed run.
+    mode = config.secure.strategy_mode([spec.kind for spec in specs])
+    secure = dataclasses.replace(config.secure, strategy=dataclasses.replace(config.secure.strategy, mode=mode))
+    return dataclasses.replace(config, scene=scene, secure=secure)
 
 
 def cmd_hide(args) -> int:

@@ -107,7 +107,7 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
         raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose bits were dealt by exact anchor positions; "
                            "hide the payload again to get a key this version reads")
     described = metadata.get("heads", {})
-    if described.get("frame") == "box" and described.get("serving", 0) > 0 and _PREFIX + "serving_radius" not in tensors:
+    if described.get("frame") == "box" and _PREFIX + "serving_radius" not in tensors:
         raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose serving anchors were counted rather than "
                            "bounded by a radius; hide the payload again to get a key this version reads")
     try:

@@ -12,6 +12,9 @@ from ..model.neural_gaussians import AnchorViewInputs
 from .keyed_bits import KeyedBitDecoder
 
 FRAMES = ("anchor", "box")
+# Inside the box every anchor is at distance 0 from it; this share of the distance to the box's
+# centre orders them without moving anyone outside by more than a thousandth of its distance.
+INSIDE_TIE_BREAK = 1e-3
 
 
 class PrivateHeads(nn.Module):
@@ -100,19 +103,28 @@ class PrivateHeads(nn.Module):
         self.box.copy_(torch.stack([0.5 * (lo + hi), (0.5 * (hi - lo)).clamp_min(1e-6)]))
 
     def box_distance(self, xyz: torch.Tensor) -> torch.Tensor:
-        """[N] distance of anchor positions [N, 3] from the box (0 inside)."""
-        return ((xyz - self.box[0]).abs() - self.box[1]).clamp_min(0.0).norm(dim=1)
+        """[N] how far anchor positions [N, 3] are from the box: the distance to it, plus
+        INSIDE_TIE_BREAK times the distance to its centre, so that anchors inside the box (all at
+        distance 0 from it) rank nearest the centre first and ``serving`` stays a count there."""
+        outside = ((xyz - self.box[0]).abs() - self.box[1]).clamp_min(0.0).norm(dim=1)
+        return outside + INSIDE_TIE_BREAK * (xyz - self.box[0]).norm(dim=1)
 
     @torch.no_grad()
     def fix_serving(self, xyz: torch.Tensor) -> None:
         """Set ``serving_radius`` so that the ``serving`` anchors nearest the box, of the anchor
         positions [N, 3] being trained, decode (with any tied with the last; all of them when there
-        are fewer). Nothing to do outside the box frame or with ``serving`` 0."""
+        are fewer). The radius lies halfway between the last serving anchor and the next one out,
+        so that rounding (another device, a float16 round trip) does not move an anchor across it.
+        Nothing to do outside the box frame or with ``serving`` 0."""
         if self.frame != "box" or self.serving <= 0:
             return
         distance = self.box_distance(xyz)
-        self.serving_radius.copy_(distance.kthvalue(min(self.serving, len(distance))).values
-                                  if len(distance) else torch.tensor(float("inf")))
+        if len(distance) <= self.serving:
+            self.serving_radius.fill_(float("inf"))
+            return
+        last = distance.kthvalue(self.serving).values
+        beyond = torch.where(distance > last, distance, torch.full_like(distance, float("inf"))).min()
+        self.serving_radius.copy_(0.5 * (last + beyond))
 
     @torch.no_grad()
     def serving_mask(self, xyz: torch.Tensor) -> torch.Tensor | None:

@@ -244,6 +244,10 @@ class SecureTrainer(ScaffoldTrainer):
         self.bit_seeds = list(state["bit_seeds"])
         for private, p, saved, message, seed in zip(self.model.secrets, self.payloads, state["private"],
                                                     state["messages"], self.bit_seeds):
+            if set(saved) != set(private.state_dict()):
+                raise ValueError(f"{path}: the checkpoint's private heads hold other tensors than this version's "
+                                 f"({', '.join(sorted(set(saved) ^ set(private.state_dict())))}; written by an "
+                                 "earlier securegs-warp); start the run again")
             private.load_state_dict(saved)
             if p.bits is not None:
                 p.bits = message.to(self.device)

@@ -73,6 +73,8 @@ class RegionAwareStrategy(ScaffoldStrategy):
             raise ValueError(f"hidden_growth_at must be 'hidden' or 'public', got {self.hidden_growth_at!r}")
 
     def initialize_state(self, model) -> dict[str, torch.Tensor]:
+        if self.mode is None:
+            raise ValueError("the density mode is chosen by the payload (SecureConfig.strategy_mode) before training")
         state = super().initialize_state(model)
         state["hid_grad_accum"] = torch.zeros_like(state["grad_accum"])
         state["hid_grad_denom"] = torch.zeros_like(state["grad_denom"])
