@@ -127,7 +127,9 @@ class StegaNeRFConfig:
     iterations: fine-tuning steps (one training view each). rgb_target: what the fine-tuned render
     is held to, "init" (the scene's render before fine-tuning, the authors' ``mse_cp init``) or
     "gt" (the training images). tune: "color" (only the SH colours move, the authors' fixed-geometry
-    setting) or "all" (every Gaussian attribute; the 3DGS analogue of also training density).
+    setting), "dc" (only the degree-0 SH colour, so that the signal cannot be view-dependent
+    colour fitted to each training view apart; not the authors', whose Plenoxels grid has SH too) or
+    "all" (every Gaussian attribute; the 3DGS analogue of also training density).
     rgb_weight, hidden_weight, clean_weight, classifier_weight: the loss weights of the render's MSE,
     the decoder's MSE to the hidden image on fine-tuned renders, its MSE to black on the original
     renders, and the classifier's BCE (the authors' w_rgb 1, w_wm 0.5 and w_wm_ctr 0.5 or 1, w_dis
@@ -167,8 +169,8 @@ class StegaNeRFConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if self.rgb_target not in ("init", "gt"):
             raise ValueError(f"rgb_target must be 'init' or 'gt', got {self.rgb_target!r}")
-        if self.tune not in ("color", "all"):
-            raise ValueError(f"tune must be 'color' or 'all', got {self.tune!r}")
+        if self.tune not in ("color", "dc", "all"):
+            raise ValueError(f"tune must be 'color', 'dc' or 'all', got {self.tune!r}")
         if self.decoder_width < 1:
             raise ValueError(f"decoder_width must be >= 1, got {self.decoder_width}")
         if self.decoder_levels < 1:

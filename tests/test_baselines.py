@@ -52,6 +52,18 @@ def test_steganerf_hides_in_fine_tuned_renders_only(scene, cover):
     assert all(torch.equal(getattr(cover.model, n), before[n]) for n in GAUSSIAN_PARAM_NAMES)
 
 
+def test_dc_tuning_moves_only_the_view_independent_colour(scene, cover):
+    # tune="dc" leaves the SH coefficients of degree >= 1 (the view-dependent colour) and the
+    # geometry as the cover has them; gradient masking (on by default) must cope with their absence.
+    stega = _stega(scene, cover, iterations=5, tune="dc")
+    stega.train()
+    assert not torch.equal(stega.model.features_dc, cover.model.features_dc)
+    assert all(torch.equal(getattr(stega.model, n), getattr(cover.model, n))
+               for n in GAUSSIAN_PARAM_NAMES if n != "features_dc")
+    with pytest.raises(ValueError, match="tune must be"):
+        StegaNeRFConfig(tune="rest")
+
+
 @pytest.mark.parametrize("height, width", [(1080, 1920), (30, 40)])
 def test_decoder_sees_the_whole_view(height, width):
     # The decoder must draw the hidden image at fixed places in every view, so each output pixel has

@@ -123,7 +123,7 @@ class StegaNeRF:
         self.hidden = hidden.to(self.device)
         self.original = model
         self.model = copy.deepcopy(model)
-        tuned = COLOR_PARAMS if config.tune == "color" else None
+        tuned = {"color": COLOR_PARAMS, "dc": ("features_dc",), "all": None}[config.tune]
         for name, p in self.model.named_parameters():
             p.requires_grad_(tuned is None or name in tuned)
         torch.manual_seed(seed)  # decoder and classifier initialisation
@@ -181,7 +181,8 @@ class StegaNeRF:
         loss.backward()
         if self.sh_weights is not None:
             self.model.features_dc.grad *= self.sh_weights[0]
-            self.model.features_rest.grad *= self.sh_weights[1:, None]
+            if self.model.features_rest.grad is not None:
+                self.model.features_rest.grad *= self.sh_weights[1:, None]
         # The authors decay both networks' rates exponentially by 10x over the run.
         decay = 0.1 ** (self.step_count / c.iterations)
         for group in self.decoder_optimizer.param_groups:
