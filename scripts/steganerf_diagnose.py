@@ -27,6 +27,7 @@ def main() -> None:
     parser.add_argument("--decoder-size", type=int, default=defaults.decoder_size)
     parser.add_argument("--classifier-lr", type=float, default=defaults.classifier_lr)
     parser.add_argument("--tune", choices=("color", "dc", "all"), default=defaults.tune)
+    parser.add_argument("--no-gradient-masking", dest="gradient_masking", action="store_false")
     parser.add_argument("--seed", type=int, default=0, help="the scene's cameras and the networks' initialisation")
     args = parser.parse_args()
 
@@ -41,7 +42,8 @@ def main() -> None:
     flat = ((hidden - hidden.mean(dim=(0, 1))) ** 2).mean().item()
     print(f"flat image of the hidden image's mean colour: {-10 * math.log10(flat):.2f} dB")
     config = StegaNeRFConfig(iterations=args.steps, decoder_levels=args.decoder_levels,
-                             decoder_size=args.decoder_size, classifier_lr=args.classifier_lr, tune=args.tune)
+                             decoder_size=args.decoder_size, classifier_lr=args.classifier_lr, tune=args.tune,
+                             gradient_masking=args.gradient_masking)
     stega = StegaNeRF(cover.model, scene, hidden, config, raster=raster, background=cover.background, seed=args.seed)
 
     def report(step: int, stats: dict) -> None:
