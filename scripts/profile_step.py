@@ -48,9 +48,9 @@ def main():
     scene = make_synthetic_scene(hidden=args.hide, level="object", width=args.width, height=args.height,
                                  n_train=args.train_views, n_test=1, device=args.device)
     config = TrainConfig(iterations=args.iterations, raster=raster)
+    secure = SecureConfig(payload=args.payload, strategy=RegionAwareStrategy(mode=args.mode))
     trainers = {"Scaffold-GS": ScaffoldTrainer(scene, config, device=args.device),
-                "SecureGS": SecureTrainer(scene, config, SecureConfig(payload=args.payload,
-                                                                          strategy=RegionAwareStrategy(mode=args.mode)), device=args.device)}
+                "SecureGS": SecureTrainer(scene, config, secure, device=args.device)}
     results = {}
     for label, trainer in trainers.items():
         for _ in range(args.warmup):

@@ -184,7 +184,8 @@ class StegaNeRFConfig:
 
 
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
-# the hidden object (the key keeps the radius that takes them in), through MLPs `width` wide (docs/results.md, "Geometric security", measures them).
+# the hidden object (the key keeps the radius that takes them in), through MLPs `width` wide
+# (docs/results.md, "Geometric security", measures them).
 BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024}
 
 

@@ -200,8 +200,8 @@ def _hidden_psnr_stega(stega: StegaNeRF) -> float:
 def run_securegs(setup: Setup) -> tuple[dict, np.ndarray]:
     payload = "image:builtin@0" if setup.payload == "image" else "object"
     # The paper's SecureGS (its RDO), whatever this project's default for an object.
-    trainer = SecureTrainer(setup.scene, setup.train, SecureConfig(payload=payload, strategy=RegionAwareStrategy(mode="rdo")),
-                            device=setup.device)
+    secure = SecureConfig(payload=payload, strategy=RegionAwareStrategy(mode="rdo"))
+    trainer = SecureTrainer(setup.scene, setup.train, secure, device=setup.device)
     _train(trainer, "SecureGS", setup)
     ev, hid = trainer.evaluate(), trainer.evaluate_hidden()
     after = {}

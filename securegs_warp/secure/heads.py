@@ -45,8 +45,8 @@ class PrivateHeads(nn.Module):
     n_hidden: k_hid, hidden Gaussians per anchor (None: the public k).
     width: hidden width of the private MLPs (None: d).
     serving: in the box frame, how many anchors, nearest the box first, decode hidden Gaussians (0:
-        every anchor that the view shows). Training keeps ``serving_radius`` (a buffer, world units,
-        saved in the key) at the distance from the box of the serving-th nearest anchor
+        every anchor that the view shows). Training keeps ``serving_radius`` (a buffer in the units of
+        ``box_distance``, saved in the key) just beyond the serving-th nearest anchor
         (``fix_serving``); decoding reads the radius, not the count, so a release that lost anchors
         decodes with the survivors and no anchor the key never trained is drawn in to make up the
         number (it would paint its own Gaussians into the box).
@@ -102,6 +102,11 @@ class PrivateHeads(nn.Module):
         lo, hi = (torch.as_tensor(v, dtype=torch.float32, device=self.box.device) for v in (lo, hi))
         self.box.copy_(torch.stack([0.5 * (lo + hi), (0.5 * (hi - lo)).clamp_min(1e-6)]))
 
+    @property
+    def serves_by_radius(self) -> bool:
+        """Whether only the anchors within ``serving_radius`` decode (box frame, ``serving`` > 0)."""
+        return self.frame == "box" and self.serving > 0
+
     def box_distance(self, xyz: torch.Tensor) -> torch.Tensor:
         """[N] how far anchor positions [N, 3] are from the box: the distance to it, plus
         INSIDE_TIE_BREAK times the distance to its centre, so that anchors inside the box (all at
@@ -116,7 +121,7 @@ class PrivateHeads(nn.Module):
         are fewer). The radius lies halfway between the last serving anchor and the next one out,
         so that rounding (another device, a float16 round trip) does not move an anchor across it.
         Nothing to do outside the box frame or with ``serving`` 0."""
-        if self.frame != "box" or self.serving <= 0:
+        if not self.serves_by_radius:
             return
         distance = self.box_distance(xyz)
         if len(distance) <= self.serving:
@@ -131,7 +136,7 @@ class PrivateHeads(nn.Module):
         """[N] bool, the anchors that decode hidden Gaussians in the box frame: those within
         ``serving_radius`` of the box, from anchor positions [N, 3]; None in the anchor frame or
         with ``serving`` 0 (the view's visible anchors decode)."""
-        if self.frame != "box" or self.serving <= 0:
+        if not self.serves_by_radius:
             return None
         return self.box_distance(xyz) <= self.serving_radius
 
