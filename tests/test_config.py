@@ -81,3 +81,18 @@ def test_resume_with_other_options_is_refused_naming_the_field(tmp_path, capsys)
     assert main(args + ["--resume", "--iterations", "4"]) == 2
     assert "train.iterations" in capsys.readouterr().err
     assert main(args + ["--resume"]) == 0  # the same options resume (here: already finished)
+
+
+def test_set_reaches_any_field_and_names_bad_ones(tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["train", "--out", str(out), "--iterations", "2", "--quiet", *TINY]
+    assert main(args + ["--set", "mlp_offset_lr=0.001,0.0001", "--set", "train.feature_lr=0.005"]) == 0
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["train"]["mlp_offset_lr"] == [0.001, 0.0001] and saved["train"]["feature_lr"] == 0.005
+    capsys.readouterr()
+    assert main(args + ["--force", "--set", "no_such_field=1"]) == 2
+    assert "no_such_field" in capsys.readouterr().err
+    assert main(args + ["--force", "--set", "feature_lr"]) == 2
+    assert "FIELD=VALUE" in capsys.readouterr().err
+    assert main(args + ["--force", "--set", "feature_lr=fast"]) == 2
+    assert "train.feature_lr" in capsys.readouterr().err

@@ -11,7 +11,7 @@ import sys
 
 import torch
 
-from ..config import RunConfig, SecureConfig, apply_overrides, field_paths, first_difference, from_dict, to_dict
+from ..config import RunConfig, SecureConfig, apply_overrides, field_paths, first_difference, from_dict, resolve_field, to_dict
 from ..rasterizer import RasterOptions
 from ..runs import RunFolder
 
@@ -124,9 +124,17 @@ def _default_of(field: str):
 
 
 def config_from_args(args, base: RunConfig, defaults: dict | None = None, device=None) -> RunConfig:
-    """``base`` with the command's defaults and every config flag the user gave applied; the
-    rasterizer tile follows the device unless ``--tile-size`` was given."""
+    """``base`` with the command's defaults, every config flag the user gave and every ``--set
+    FIELD=VALUE`` applied (the flags win over ``--set`` on the same field); the rasterizer tile
+    follows the device unless ``--tile-size`` was given."""
     given = {name: value for name, value in vars(args).items() if "." in name and value is not None}
+    settings = {}
+    for setting in getattr(args, "settings", None) or []:
+        name, sep, value = setting.partition("=")
+        if not sep or not name or not value:
+            raise CommandError(f"--set {setting!r}: expected FIELD=VALUE")
+        settings[resolve_field(base, name)] = value
+    given = {**settings, **given}
     config = apply_overrides(base, {**(defaults or {}), **given})
     if "train.raster.tile_size" not in given and device is not None:
         config = apply_overrides(config, {"train.raster.tile_size": RasterOptions.for_device(device).tile_size})
@@ -144,6 +152,9 @@ def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
                    help="steps between checkpoints (default: 200); one is also written at the end and on Ctrl-C")
     p.add_argument("--device", help="cpu or cuda[:N] (default: cuda when available)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--set", dest="settings", action="append", default=[], metavar="FIELD=VALUE",
+                   help="any other config field by its dotted path or unique name, e.g. "
+                        "--set train.mlp_offset_lr=0.0012,0.00012 (repeatable; config.json lists the fields)")
 
 
 def check_run_arguments(args) -> None:
