@@ -44,6 +44,9 @@ def main():
     ap.add_argument("--methods", default="scaffold,securegs,3dgs,steganerf,gs_hider",
                     help="comma-separated, in order (steganerf after 3dgs: it fine-tunes that cover)")
     ap.add_argument("--attacks", default=",".join(DEFAULT_ATTACKS), help="attack specs, comma-separated ('' for none)")
+    ap.add_argument("--seed", type=int, default=0, help="training seed of every method (the scene stays the same)")
+    ap.add_argument("--steganerf-tune", choices=("color", "dc", "all"), default="color",
+                    help="what StegaNeRF's fine-tuning moves (StegaNeRFConfig.tune; color: the authors')")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/compare_methods"))
     args = ap.parse_args()
     p = dict(PRESETS[args.preset])
@@ -60,7 +63,7 @@ def main():
           f"{len(scene.points)} points, {time.perf_counter() - t0:.0f} s", flush=True)
     setup = make_setup(scene, args.payload, p["iterations"], p["finetune"], RasterOptions.for_device(p["device"]),
                        torch.device(p["device"]), [a for a in args.attacks.split(",") if a],
-                       log=lambda line: print(line, flush=True))
+                       log=lambda line: print(line, flush=True), seed=args.seed, steganerf_tune=args.steganerf_tune)
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 check=True).stdout.strip()
@@ -68,7 +71,8 @@ def main():
         commit = "unknown"
     device = torch.cuda.get_device_name() if p["device"] == "cuda" else "CPU"
     meta = {**p, "device": device, "payload": args.payload, "hide": args.hide, "preset": args.preset,
-            "date": time.strftime("%Y-%m-%d", time.gmtime()), "commit": commit, "attacks": setup.attacks}
+            "date": time.strftime("%Y-%m-%d", time.gmtime()), "commit": commit, "attacks": setup.attacks,
+            "seed": args.seed, "steganerf_tune": args.steganerf_tune}
     out = Path(args.out)
     rows = run_all(setup, [m for m in args.methods.split(",") if m],
                    on_row=lambda rows: write_report(out, rows, meta))

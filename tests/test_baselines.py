@@ -153,3 +153,5 @@ def test_comparison_runs_and_reports(scene, tmp_path):
         make_setup(scene, "bits", 8, 4, CPU_RASTER, torch.device("cpu"))
     with pytest.raises(ValueError, match="unknown attack"):
         make_setup(scene, "image", 8, 4, CPU_RASTER, torch.device("cpu"), attacks=("melt:1",))
+    with pytest.raises(ValueError, match="tune must be"):
+        make_setup(scene, "image", 8, 4, CPU_RASTER, torch.device("cpu"), steganerf_tune="geometry")

@@ -74,7 +74,7 @@ class Setup:
 
     hidden_image: [H, W, 3] on ``device`` (image payload). radius: the exposure radius (3% of the
     hidden object's diagonal). finetune: StegaNeRF's fine-tuning steps after the 3DGS cover's
-    ``iterations``."""
+    ``iterations``. steganerf: StegaNeRF's options (its ``iterations`` is ``finetune``)."""
 
     scene: object
     payload: str
@@ -85,6 +85,7 @@ class Setup:
     attacks: tuple
     hidden_image: torch.Tensor
     radius: float
+    steganerf: StegaNeRFConfig = dataclasses.field(default_factory=StegaNeRFConfig)
     log: object = print
 
     def progress(self, label: str, total: int, describe):
@@ -105,14 +106,17 @@ class Setup:
 
 
 def make_setup(scene, payload: str, iterations: int, finetune: int, raster, device, attacks=DEFAULT_ATTACKS,
-               log=print) -> Setup:
+               log=print, seed: int = 0, steganerf_tune: str = "color") -> Setup:
+    """The shared setup; ``seed`` seeds every method's training, ``steganerf_tune`` is
+    ``StegaNeRFConfig.tune``. Bad options raise ValueError before any training."""
     if payload not in PAYLOADS:
         raise ValueError(f"payload must be one of {', '.join(PAYLOADS)}, got {payload!r}")
     parse_attacks(attacks)  # a bad spec fails before any training
     radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0))) if scene.hidden_points is not None \
         else 0.0
-    return Setup(scene, payload, iterations, finetune, TrainConfig(iterations=iterations, raster=raster), device,
-                 tuple(attacks), torch.as_tensor(hidden_image_for(scene), device=device), radius, log)
+    return Setup(scene, payload, iterations, finetune, TrainConfig(iterations=iterations, seed=seed, raster=raster),
+                 device, tuple(attacks), torch.as_tensor(hidden_image_for(scene), device=device), radius,
+                 StegaNeRFConfig(iterations=finetune, tune=steganerf_tune), log)
 
 
 def _train(trainer, label: str, setup: Setup) -> None:
@@ -165,7 +169,7 @@ def run_3dgs(setup: Setup) -> tuple[dict, np.ndarray, GaussianTrainer]:
 def run_steganerf(setup: Setup, cover: GaussianTrainer) -> tuple[dict, np.ndarray | None]:
     if setup.payload != "image":
         return {"method": "3DGS+StegaNeRF", "note": "hides 2D images only (decoded from a render)"}, None
-    stega = StegaNeRF(cover.model, setup.scene, setup.hidden_image, StegaNeRFConfig(iterations=setup.finetune),
+    stega = StegaNeRF(cover.model, setup.scene, setup.hidden_image, setup.steganerf,
                       raster=setup.train.raster, background=setup.background, seed=setup.train.seed)
     t0 = time.perf_counter()
     stega.train(setup.progress("3DGS+StegaNeRF: fine-tune", setup.finetune,
@@ -278,8 +282,8 @@ def report_tables(rows: list[dict], meta: dict) -> str:
     """Markdown: the main table, the attack table (hidden PSNR after each attack) and the papers'
     numbers."""
     lines = [f"{meta['device']}, {meta['width']}×{meta['height']}, {meta['iterations']} iterations "
-             f"(3DGS+StegaNeRF: + {meta['finetune']} fine-tuning steps), payload {meta['payload']}, "
-             f"commit {meta.get('commit', '?')}", "",
+             f"(3DGS+StegaNeRF: + {meta['finetune']} fine-tuning steps, tune {meta.get('steganerf_tune', 'color')}), "
+             f"payload {meta['payload']}, seed {meta.get('seed', 0)}, commit {meta.get('commit', '?')}", "",
              "| " + " | ".join(COLUMNS) + " |", "|---" * len(COLUMNS) + "|"]
     lines += ["| " + " | ".join(_fmt(r.get(c)) for c in COLUMNS) + " |" for r in rows]
     attacked = [r for r in rows if r.get("hidden_psnr_after")]
