@@ -76,8 +76,11 @@ def _train(scene, iterations, steps=None, **config):
 
 
 def test_strategy_keeps_statistics_aligned_with_anchors(tiny_scene):
+    # min_opacity is per view and summed over an anchor's k Gaussians. At 0.5, whether any anchor
+    # falls below it within 40 steps hangs on the seed and on the machine's float rounding; 1 is
+    # far enough inside the initial opacities that pruning does not.
     strategy = ScaffoldStrategy(start_stat=0, update_from=0, update_interval=5, update_until=100,
-                                grad_threshold=1e-5, min_opacity=0.5)
+                                grad_threshold=1e-5, min_opacity=1.0)
     trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=40, raster=CPU_RASTER), strategy=strategy)
     grown = pruned = 0
     for _ in range(40):
