@@ -11,7 +11,8 @@ import sys
 
 import torch
 
-from ..config import RunConfig, SecureConfig, apply_overrides, field_paths, first_difference, from_dict, resolve_field, to_dict
+from ..config import (RunConfig, SecureConfig, apply_overrides, field_paths, first_difference, from_dict,
+                      resolve_field, to_dict)
 from ..rasterizer import RasterOptions
 from ..runs import RunFolder
 
