@@ -65,7 +65,8 @@ def main():
                        torch.device(p["device"]), [a for a in args.attacks.split(",") if a],
                        log=lambda line: print(line, flush=True), seed=args.seed, steganerf_tune=args.steganerf_tune)
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+        # "-dirty" when the tree is not the commit's (a copy with a stale .git, uncommitted edits)
+        commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
                                 check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
