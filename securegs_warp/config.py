@@ -479,12 +479,12 @@ def field_paths(config) -> dict[str, type]:
 
 
 def resolve_field(config, name: str) -> str:
-    """The dotted path of field ``name`` in ``config``: a full path, or a leaf name that is unique in
-    the tree (``r_down`` for ``strategy.r_down``)."""
+    """The dotted path of field ``name`` in ``config``: a full path, or a tail of one that is unique in
+    the tree (``r_down`` or ``strategy.r_down`` for ``secure.strategy.r_down``)."""
     paths = field_paths(config)
     if name in paths:
         return name
-    matches = [p for p in paths if p.rsplit(".", 1)[-1] == name]
+    matches = [p for p in paths if p.endswith("." + name)]
     if len(matches) == 1:
         return matches[0]
     if matches:

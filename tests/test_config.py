@@ -44,6 +44,10 @@ def test_every_leaf_field_has_one_name():
     # names that repeat are ambiguous as bare names and must be given as paths (seed: scene and training)
     assert sorted({n for n in leaves if leaves.count(n) > 1}) == ["seed"]
     assert resolve_field(RunConfig(secure=SecureConfig()), "r_down") == "secure.strategy.r_down"
+    assert resolve_field(RunConfig(secure=SecureConfig()), "strategy.r_down") == "secure.strategy.r_down"
+    assert resolve_field(RunConfig(secure=SecureConfig()), "raster.fast_math") == "train.raster.fast_math"
+    with pytest.raises(ValueError, match="unknown option"):
+        resolve_field(RunConfig(secure=SecureConfig()), "down")  # a tail is whole names, not letters
     with pytest.raises(ValueError, match="ambiguous"):
         resolve_field(RunConfig(secure=SecureConfig()), "seed")
 

@@ -154,7 +154,7 @@ def add_run_arguments(p: argparse.ArgumentParser, default_out: str) -> None:
     p.add_argument("--device", help="cpu or cuda[:N] (default: cuda when available)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--set", dest="settings", action="append", default=[], metavar="FIELD=VALUE",
-                   help="any other config field by its dotted path or unique name, e.g. "
+                   help="any other config field by its dotted path or a unique tail of it, e.g. "
                         "--set train.mlp_offset_lr=0.0012,0.00012 (repeatable; config.json lists the fields)")
 
 
