@@ -73,19 +73,18 @@ class Setup:
     scene's hidden object), the budget, the rasterizer, the attacks, and where to print progress.
 
     hidden_image: [H, W, 3] on ``device`` (image payload). radius: the exposure radius (3% of the
-    hidden object's diagonal). finetune: StegaNeRF's fine-tuning steps after the 3DGS cover's
-    ``iterations``. steganerf: StegaNeRF's options (its ``iterations`` is ``finetune``)."""
+    hidden object's diagonal). steganerf: StegaNeRF's options; its ``iterations`` are the
+    fine-tuning steps after the 3DGS cover's ``iterations``."""
 
     scene: object
     payload: str
     iterations: int
-    finetune: int
     train: TrainConfig
     device: torch.device
     attacks: tuple
     hidden_image: torch.Tensor
     radius: float
-    steganerf: StegaNeRFConfig = dataclasses.field(default_factory=StegaNeRFConfig)
+    steganerf: StegaNeRFConfig
     log: object = print
 
     def progress(self, label: str, total: int, describe):
@@ -114,7 +113,7 @@ def make_setup(scene, payload: str, iterations: int, finetune: int, raster, devi
     parse_attacks(attacks)  # a bad spec fails before any training
     radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0))) if scene.hidden_points is not None \
         else 0.0
-    return Setup(scene, payload, iterations, finetune, TrainConfig(iterations=iterations, seed=seed, raster=raster),
+    return Setup(scene, payload, iterations, TrainConfig(iterations=iterations, seed=seed, raster=raster),
                  device, tuple(attacks), torch.as_tensor(hidden_image_for(scene), device=device), radius,
                  StegaNeRFConfig(iterations=finetune, tune=steganerf_tune), log)
 
@@ -172,7 +171,7 @@ def run_steganerf(setup: Setup, cover: GaussianTrainer) -> tuple[dict, np.ndarra
     stega = StegaNeRF(cover.model, setup.scene, setup.hidden_image, setup.steganerf,
                       raster=setup.train.raster, background=setup.background, seed=setup.train.seed)
     t0 = time.perf_counter()
-    stega.train(setup.progress("3DGS+StegaNeRF: fine-tune", setup.finetune,
+    stega.train(setup.progress("3DGS+StegaNeRF: fine-tune", setup.steganerf.iterations,
                                lambda stats: f"hidden mse {stats['hidden']:.4f}  rgb mse {stats['rgb']:.5f}"))
     seconds = cover.train_seconds + time.perf_counter() - t0
     ev = stega.evaluate()
@@ -188,7 +187,7 @@ def run_steganerf(setup: Setup, cover: GaussianTrainer) -> tuple[dict, np.ndarra
              "release_format": "standard 3DGS PLY (SH degree 3); key: U-Net decoder + classifier",
              "primitives": f"{stega.model.num_gaussians} Gaussians", "train_seconds": seconds,
              "hidden_psnr_after": after,
-             "note": f"{setup.iterations} 3DGS steps + {setup.finetune} fine-tuning steps; hidden image decoded from "
+             "note": f"{setup.iterations} 3DGS steps + {setup.steganerf.iterations} fine-tuning steps; hidden image decoded from "
                      f"every held-out view (from the original scene's renders: "
                      f"{ev['psnr_hidden_from_original']:.1f} dB)"},
             original.means.detach().cpu().numpy())
