@@ -70,15 +70,15 @@ PAPER = {
 @dataclasses.dataclass
 class Setup:
     """What every method shares: the scene, the payload ("image": the builtin emblem; "object": the
-    scene's hidden object), the budget, the rasterizer, the attacks, and where to print progress.
+    scene's hidden object), the budget (``train.iterations``), the rasterizer, the attacks, and where
+    to print progress.
 
     hidden_image: [H, W, 3] on ``device`` (image payload). radius: the exposure radius (3% of the
     hidden object's diagonal). steganerf: StegaNeRF's options; its ``iterations`` are the
-    fine-tuning steps after the 3DGS cover's ``iterations``."""
+    fine-tuning steps after the 3DGS cover's ``train.iterations``."""
 
     scene: object
     payload: str
-    iterations: int
     train: TrainConfig
     device: torch.device
     attacks: tuple
@@ -113,7 +113,7 @@ def make_setup(scene, payload: str, iterations: int, finetune: int, raster, devi
     parse_attacks(attacks)  # a bad spec fails before any training
     radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0))) if scene.hidden_points is not None \
         else 0.0
-    return Setup(scene, payload, iterations, TrainConfig(iterations=iterations, seed=seed, raster=raster),
+    return Setup(scene, payload, TrainConfig(iterations=iterations, seed=seed, raster=raster),
                  device, tuple(attacks), torch.as_tensor(hidden_image_for(scene), device=device), radius,
                  StegaNeRFConfig(iterations=finetune, tune=steganerf_tune), log)
 
@@ -187,8 +187,8 @@ def run_steganerf(setup: Setup, cover: GaussianTrainer) -> tuple[dict, np.ndarra
              "release_format": "standard 3DGS PLY (SH degree 3); key: U-Net decoder + classifier",
              "primitives": f"{stega.model.num_gaussians} Gaussians", "train_seconds": seconds,
              "hidden_psnr_after": after,
-             "note": f"{setup.iterations} 3DGS steps + {setup.steganerf.iterations} fine-tuning steps; hidden image decoded from "
-                     f"every held-out view (from the original scene's renders: "
+             "note": f"{setup.train.iterations} 3DGS steps + {setup.steganerf.iterations} fine-tuning steps; "
+                     f"hidden image decoded from every held-out view (from the original scene's renders: "
                      f"{ev['psnr_hidden_from_original']:.1f} dB)"},
             original.means.detach().cpu().numpy())
 

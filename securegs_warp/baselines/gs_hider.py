@@ -409,8 +409,8 @@ def compare_row(setup) -> tuple[dict, np.ndarray]:
     payload = hidden_payload(setup.scene, spec, setup.device)
     t0 = time.perf_counter()
     train = dataclasses.replace(setup.train, model="3dgs")
-    model = train_gs_hider(setup.scene, payload, setup.iterations, seed=train.seed, device=setup.device, train=train,
-                           on_step=setup.progress("GS-Hider:", setup.iterations,
+    model = train_gs_hider(setup.scene, payload, train.iterations, seed=train.seed, device=setup.device, train=train,
+                           on_step=setup.progress("GS-Hider:", train.iterations,
                                                   lambda stats: f"hidden {stats['psnr_hidden']:.2f} dB"))
     seconds = time.perf_counter() - t0
     ev = evaluate_gs_hider(model, setup.scene, payload, train.raster)
