@@ -3,12 +3,16 @@ synthetic scene (securegs_warp.step_profile has the sections and how they are ti
 
     python scripts/profile_step.py                       # GPU: 1920×1080
     python scripts/profile_step.py --device cpu --width 64 --height 48 --steps 2 --warmup 1
+    python scripts/profile_step.py --device cpu --width 64 --height 48 --mode rdo,cover --count-ops --no-timing
 
-Both trainers first run --warmup steps untimed (kernel compilation, allocator warm-up), then
---steps steps with the section timers and --steps without. Writes profile_step.json and .md to
---out (default $OUT) when given.
+Every trainer (Scaffold-GS, then SecureGS in each --mode) first runs --warmup steps untimed (kernel
+compilation, allocator warm-up), then --steps steps with the section timers and --steps without;
+with --count-ops, --steps more under torch.profiler, counting per section what a step launches
+(step_profile.count_ops: aten ops, autograd nodes, host reads, and on CUDA kernel launches and
+copies, and Warp launches). Writes profile_step.json and .md to --out (default $OUT) when given.
 """
 import argparse
+import functools
 import json
 import os
 
@@ -35,8 +39,11 @@ def main():
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--hide", default="mug", help="the hidden object of the scene")
     parser.add_argument("--payload", default=SecureConfig().payload)
-    parser.add_argument("--mode", default="rdo", help="density mode of the SecureGS trainer (rdo: the paper's, "
-                                                      "as in docs/results.md's profiles; cover: an object's default)")
+    parser.add_argument("--mode", default="rdo", help="density modes of the SecureGS trainers, comma-separated (rdo: "
+                                                      "the paper's, as in docs/results.md's profiles; cover: an "
+                                                      "object's default)")
+    parser.add_argument("--count-ops", action="store_true", help="also count what a step launches, by section")
+    parser.add_argument("--no-timing", dest="timing", action="store_false", help="skip the timed steps")
     parser.add_argument("--options", default="", help="rasterizer options on top of the device's, e.g. capture=true")
     parser.add_argument("--out", default=os.environ.get("OUT"), help="folder for profile_step.json and .md")
     args = parser.parse_args()
@@ -48,30 +55,46 @@ def main():
     scene = make_synthetic_scene(hidden=args.hide, level="object", width=args.width, height=args.height,
                                  n_train=args.train_views, n_test=1, device=args.device)
     config = TrainConfig(iterations=args.iterations, raster=raster)
-    secure = SecureConfig(payload=args.payload, strategy=RegionAwareStrategy(mode=args.mode))
-    trainers = {"Scaffold-GS": ScaffoldTrainer(scene, config, device=args.device),
-                "SecureGS": SecureTrainer(scene, config, secure, device=args.device)}
-    results = {}
-    for label, trainer in trainers.items():
+    modes = [m.strip() for m in args.mode.split(",") if m.strip()]
+    trainers = {"Scaffold-GS": lambda: ScaffoldTrainer(scene, config, device=args.device)}
+    for mode in modes:
+        secure = SecureConfig(payload=args.payload, strategy=RegionAwareStrategy(mode=mode))
+        label = "SecureGS" if len(modes) == 1 else f"SecureGS {mode}"
+        trainers[label] = functools.partial(SecureTrainer, scene, config, secure, device=args.device)
+    results, counts = {}, {}
+    for label, make in trainers.items():
+        trainer = make()  # one at a time: a 1080p trainer holds its targets and buffers on the device
         for _ in range(args.warmup):
             trainer.step()
-        results[label] = step_profile.profile_steps(trainer, args.steps)
-        results[label]["anchors"] = trainer.model.anchors.num_anchors
-        print(label, json.dumps(results[label]), flush=True)
+        if args.timing:
+            results[label] = step_profile.profile_steps(trainer, args.steps)
+            results[label]["anchors"] = trainer.model.anchors.num_anchors
+            print(label, json.dumps(results[label]), flush=True)
+        if args.count_ops:
+            counts[label] = step_profile.count_ops(trainer, args.steps)
+            print(label, "counts", json.dumps(counts[label]["total"]), flush=True)
+        del trainer
     device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
-    table = step_profile.profile_table(
-        results, f"{device}, synthetic {args.width}×{args.height}, payload {args.payload}, mean of {args.steps} "
-                 f"steps after {args.warmup}, raster {benchmark.options_text(raster) or 'default options'}")
-    ratio = results["SecureGS"]["step_ms"] / results["Scaffold-GS"]["step_ms"]
-    table += f"\n\nSecureGS step / Scaffold-GS step (no timers): {ratio:.2f}"
-    print(table)
+    setup = (f"{device}, synthetic {args.width}×{args.height}, payload {args.payload}, mean of {args.steps} "
+             f"steps after {args.warmup}, raster {benchmark.options_text(raster) or 'default options'}")
+    tables = []
+    if results:
+        table = step_profile.profile_table(results, setup)
+        for label in list(results)[1:]:
+            ratio = results[label]["step_ms"] / results["Scaffold-GS"]["step_ms"]
+            table += f"\n\n{label} step / Scaffold-GS step (no timers): {ratio:.2f}"
+        tables.append(table)
+    if counts:
+        kinds = step_profile.COUNTS if args.device == "cuda" else step_profile.HOST_COUNTS
+        tables.append(step_profile.count_table(counts, f"What a step launches, per step: {setup}", kinds))
+    text = "\n\n".join(tables)
+    print(text)
     if args.out:
         os.makedirs(args.out, exist_ok=True)
         with open(os.path.join(args.out, "profile_step.json"), "w") as f:
-            json.dump({"device": device, "args": vars(args), "results": results}, f, indent=1)
+            json.dump({"device": device, "args": vars(args), "results": results, "counts": counts}, f, indent=1)
         with open(os.path.join(args.out, "profile_step.md"), "w") as f:
-            f.write(table + "\n")
-
+            f.write(text + "\n")
 
 if __name__ == "__main__":
     main()

@@ -94,6 +94,27 @@ def _branch(parent: str | None) -> str:
     return "hidden" if parent is not None and parent.startswith("hidden") else "public"
 
 
+def _section_patches(trainer, wrap) -> list:
+    """(object, attribute, wrapped) for every section of a step; ``wrap(fn, name)`` wraps one."""
+    patches = [
+        (trainer, "step", wrap(trainer.step, "other")),
+        (trainer, "render", wrap(trainer.render, "public heads")),
+        (trainer, "image_loss", wrap(trainer.image_loss, "image losses")),
+        (trainer, "extra_losses", wrap(trainer.extra_losses, "hidden branch other")),
+        (trainer, "after_update", wrap(trainer.after_update, "after update")),
+        (trainer.optimizer, "step", wrap(trainer.optimizer.step, "adam")),
+        (trainer.optimizer, "zero_grad", wrap(trainer.optimizer.zero_grad, "zero_grad")),
+        (trainer.strategy, "step_post_backward", wrap(trainer.strategy.step_post_backward, "strategy")),
+        (render_module, "rasterize", wrap(render_module.rasterize, lambda p: f"{_branch(p)} rasterize")),
+        (train_base, "nonfinite_gradient_counts", wrap(train_base.nonfinite_gradient_counts, "gradient check")),
+        (torch.Tensor, "backward", wrap(torch.Tensor.backward, "backward (autograd, MLPs)")),
+        (_Rasterize, "backward", staticmethod(wrap(_Rasterize.backward, "rasterize backward"))),
+    ]
+    if hasattr(trainer, "render_hidden"):
+        patches.append((trainer, "render_hidden", wrap(trainer.render_hidden, "hidden heads")))
+    return patches
+
+
 def profile_steps(trainer, steps: int) -> dict:
     """Run ``steps`` training steps of ``trainer`` with section timers, then ``steps`` more without.
 
@@ -103,24 +124,7 @@ def profile_steps(trainer, steps: int) -> dict:
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
     timer = SectionTimer(trainer.device)
-    patches = [
-        (trainer, "step", timer.timed(trainer.step, "other")),
-        (trainer, "render", timer.timed(trainer.render, "public heads")),
-        (trainer, "image_loss", timer.timed(trainer.image_loss, "image losses")),
-        (trainer, "extra_losses", timer.timed(trainer.extra_losses, "hidden branch other")),
-        (trainer, "after_update", timer.timed(trainer.after_update, "after update")),
-        (trainer.optimizer, "step", timer.timed(trainer.optimizer.step, "adam")),
-        (trainer.optimizer, "zero_grad", timer.timed(trainer.optimizer.zero_grad, "zero_grad")),
-        (trainer.strategy, "step_post_backward", timer.timed(trainer.strategy.step_post_backward, "strategy")),
-        (render_module, "rasterize", timer.timed(render_module.rasterize, lambda p: f"{_branch(p)} rasterize")),
-        (train_base, "nonfinite_gradient_counts",
-         timer.timed(train_base.nonfinite_gradient_counts, "gradient check")),
-        (torch.Tensor, "backward", timer.timed(torch.Tensor.backward, "backward (autograd, MLPs)")),
-        (_Rasterize, "backward", staticmethod(timer.timed(_Rasterize.backward, "rasterize backward"))),
-    ]
-    if hasattr(trainer, "render_hidden"):
-        patches.append((trainer, "render_hidden", timer.timed(trainer.render_hidden, "hidden heads")))
-    with _patched(patches):
+    with _patched(_section_patches(trainer, timer.timed)):
         t0 = time.perf_counter()
         for _ in range(steps):
             trainer.step()
@@ -133,6 +137,128 @@ def profile_steps(trainer, steps: int) -> dict:
     plain = (time.perf_counter() - t0) / steps
     sections = {name: 1000 * timer.totals.get(name, 0.0) / steps for name in SECTIONS}
     return {"sections_ms": sections, "profiled_step_ms": 1000 * profiled, "step_ms": 1000 * plain}
+
+
+# What ``count_ops`` counts per section, per step: torch.profiler's top-level aten ops (forward and
+# those the autograd backward runs), the autograd nodes evaluated, the host reads of device values
+# (item, nonzero, equal: a synchronisation each on CUDA), the CUDA kernel launches and copies
+# (CUDA only), and the Warp launches.
+COUNTS = ("aten ops", "autograd nodes", "host reads", "cuda launches", "cuda copies", "warp launches")
+HOST_COUNTS = ("aten ops", "autograd nodes", "host reads", "warp launches")  # those a CPU run has
+_CUDA_LAUNCHES = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx",
+                  "cudaGraphLaunch")
+_HOST_READS = ("aten::item", "aten::_local_scalar_dense", "aten::nonzero", "aten::equal", "aten::is_nonzero")
+_SECTION_MARK = "step_profile::"
+
+
+class SectionCounter(SectionTimer):
+    """Marks each section with a profiler range (``record_function``) instead of timing it, and counts
+    the Warp launches made inside it; nothing is synchronised."""
+
+    def __init__(self, device: torch.device):
+        super().__init__(device)
+        self.cuda = False
+        self.warp_launches: dict[str, int] = {}
+
+    @contextlib.contextmanager
+    def section(self, name: str):
+        self._names.append(name)
+        try:
+            with torch.profiler.record_function(_SECTION_MARK + name):
+                yield
+        finally:
+            self._names.pop()
+
+    def counted(self, fn):
+        """``fn`` (a Warp launch function), counted against the current section."""
+        def wrapper(*args, **kwargs):
+            name = self.current or "other"
+            self.warp_launches[name] = self.warp_launches.get(name, 0) + 1
+            return fn(*args, **kwargs)
+        return wrapper
+
+
+def _count_kind(event) -> str | None:
+    """Which of COUNTS a profiler event adds to (None: none)."""
+    name = event.name
+    if name in _CUDA_LAUNCHES:
+        return "cuda launches"
+    if name.startswith(("cudaMemcpy", "cudaMemset")):
+        return "cuda copies"
+    if name.startswith("autograd::engine::evaluate_function"):
+        return "autograd nodes"
+    if name in _HOST_READS:  # nested in another host read (item's _local_scalar_dense) it is that one
+        return None if any(p.name in _HOST_READS for p in _ancestors(event)) else "host reads"
+    if name.startswith("aten::") and not any(p.name.startswith("aten::") for p in _ancestors(event)):
+        return "aten ops"
+    return None
+
+
+def _ancestors(event):
+    parent = event.cpu_parent
+    while parent is not None:
+        yield parent
+        parent = parent.cpu_parent
+
+
+def count_ops(trainer, steps: int) -> dict:
+    """Run ``steps`` training steps of ``trainer`` under torch.profiler and count, per section and
+    in all, what each step launches (COUNTS). A host read is counted apart from the aten ops (a
+    top-level ``item`` is one host read and no aten op). Events are given to the innermost section
+    whose time range holds their start, so that the autograd backward's work on CUDA, which runs on
+    another thread, falls in the backward sections.
+
+    Returns {"per_step": {section: {count: mean per step}}, "total": {count: mean per step}}.
+    """
+    import warp as wp
+
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    counter = SectionCounter(trainer.device)
+    patches = _section_patches(trainer, counter.timed)
+    patches += [(wp, "launch", counter.counted(wp.launch)), (wp, "capture_launch", counter.counted(wp.capture_launch))]
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if trainer.device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with _patched(patches), torch.profiler.profile(activities=activities) as prof:
+        for _ in range(steps):
+            trainer.step()
+    events = list(prof.events())
+    marks = sorted(((e.time_range.start, e.time_range.end, e.name[len(_SECTION_MARK):]) for e in events
+                    if e.name.startswith(_SECTION_MARK)), key=lambda m: m[0])
+    counts = {name: dict.fromkeys(COUNTS, 0.0) for name in SECTIONS}
+    for event in events:
+        kind = _count_kind(event)
+        if kind is None:
+            continue
+        start, section = event.time_range.start, None
+        for lo, hi, name in marks:  # sorted by start: the last range holding it is the innermost
+            if lo > start:
+                break
+            if start <= hi:
+                section = name
+        counts[section or "other"][kind] += 1
+    for name, n in counter.warp_launches.items():
+        counts[name]["warp launches"] += n
+    per_step = {name: {kind: n / steps for kind, n in c.items()} for name, c in counts.items()}
+    total = {kind: sum(c[kind] for c in per_step.values()) for kind in COUNTS}
+    return {"per_step": per_step, "total": total}
+
+
+def count_table(results: dict, title: str, kinds=HOST_COUNTS) -> str:
+    """Markdown: one row per section, for each trainer in ``results`` ({label: count_ops}) one column
+    per count in ``kinds`` (COUNTS on CUDA)."""
+    labels = list(results)
+    head = [f"{label} {kind}" for label in labels for kind in kinds]
+    lines = [title, "", "| section | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
+    for name in (*SECTIONS, None):
+        row = [results[k]["total"] if name is None else results[k]["per_step"][name] for k in labels]
+        cells = [f"{r[kind]:.0f}" for r in row for kind in kinds]
+        if name is None:
+            lines.append("| **step** | " + " | ".join(f"**{c}**" for c in cells) + " |")
+        else:
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def profile_table(results: dict, title: str) -> str:

@@ -35,3 +35,34 @@ def test_profile_steps_times_each_branch_and_restores_everything():
     assert results["scaffold"]["sections_ms"]["hidden rasterize"] == 0
     table = step_profile.profile_table(results, "title")
     assert "| hidden rasterize |" in table and "scaffold ms | secure ms" in table
+
+
+def test_count_ops_finds_each_branch_and_restores_everything():
+    import warp as wp
+
+    scene = make_synthetic_scene(hidden="mug", level="object", width=24, height=18, n_train=2, n_test=1,
+                                 n_points=200)
+    config = TrainConfig(iterations=10, raster=RasterOptions.for_device("cpu"))
+    launch = (wp.launch, wp.capture_launch)
+    results = {}
+    for label, trainer in (("scaffold", ScaffoldTrainer(scene, config)),
+                           ("secure", SecureTrainer(scene, config, SecureConfig(payload="object+bits:48")))):
+        trainer.step()
+        results[label] = step_profile.count_ops(trainer, 2)
+        assert trainer.step_count == 3 and "step" not in vars(trainer)
+    assert (wp.launch, wp.capture_launch) == launch
+    for label, result in results.items():
+        per_step, total = result["per_step"], result["total"]
+        assert list(per_step) == list(step_profile.SECTIONS) and list(total) == list(step_profile.COUNTS)
+        for name in ("public heads", "image losses", "backward (autograd, MLPs)"):
+            assert per_step[name]["aten ops"] > 0, (label, name)
+        assert per_step["backward (autograd, MLPs)"]["autograd nodes"] > 0
+        assert per_step["public rasterize"]["warp launches"] > 0 and per_step["rasterize backward"]["warp launches"] > 0
+        assert total["cuda launches"] == 0  # a CPU run
+        assert total["aten ops"] == sum(s["aten ops"] for s in per_step.values())
+    secure, scaffold = results["secure"]["per_step"], results["scaffold"]["per_step"]
+    assert secure["hidden heads"]["aten ops"] > 0 and scaffold["hidden heads"]["aten ops"] == 0
+    assert secure["hidden rasterize"]["warp launches"] == scaffold["public rasterize"]["warp launches"]
+    assert results["secure"]["total"]["aten ops"] > results["scaffold"]["total"]["aten ops"]
+    table = step_profile.count_table(results, "title")
+    assert "| hidden heads |" in table and "scaffold aten ops" in table and "| **step** |" in table
