@@ -99,7 +99,7 @@ def _section_patches(trainer, wrap) -> list:
     patches = [
         (trainer, "step", wrap(trainer.step, "other")),
         (trainer, "render", wrap(trainer.render, "public heads")),
-        (trainer, "image_loss", wrap(trainer.image_loss, "image losses")),
+        (trainer, "image_losses", wrap(trainer.image_losses, "image losses")),
         (trainer, "extra_losses", wrap(trainer.extra_losses, "hidden branch other")),
         (trainer, "after_update", wrap(trainer.after_update, "after update")),
         (trainer.optimizer, "step", wrap(trainer.optimizer.step, "adam")),

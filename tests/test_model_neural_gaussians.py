@@ -11,6 +11,7 @@ from securegs_warp.model import (
     generate_neural_gaussians,
     visible_anchor_mask,
 )
+from securegs_warp.model.neural_gaussians import scale_gradient
 
 
 def tiny_model_and_heads(use_feat_bank=False):
@@ -135,3 +136,17 @@ def test_camera_center_from_viewmat():
     viewmat[:3, :3] = R
     viewmat[:3, 3] = -R @ center
     assert torch.allclose(camera_center_from_viewmat(viewmat), center, atol=1e-6)
+
+
+def test_scaled_gradient_is_the_detach_formula():
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(5, 4, generator=g, requires_grad=True)
+    upstream = torch.randn(5, 4, generator=g)
+    for factor in (0.1, 0.37):
+        y = scale_gradient(x, factor)
+        assert torch.equal(y, x.detach())
+        grad, = torch.autograd.grad(y, x, upstream)
+        reference = x.detach() + factor * (x - x.detach())
+        ref_grad, = torch.autograd.grad(reference, x, upstream)
+        assert torch.equal(grad, ref_grad)
+    assert scale_gradient(x, 1.0) is x and not scale_gradient(x, 0.0).requires_grad

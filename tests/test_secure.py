@@ -455,3 +455,28 @@ def test_reveal_needs_only_the_release_and_the_key(tmp_path, monkeypatch):
     assert len(json.loads((revealed / "bits.json").read_text())["bits"]) == 8
     hidden = sorted(p.name for p in (revealed / "renders").iterdir() if p.name.startswith("hidden_"))
     assert hidden == ["hidden_train_r_1.png"]  # the image payload's own view, named as in the data
+
+
+def test_after_update_refits_serving_and_bits_when_anchors_change(hidden_scene):
+    """after_update keeps the serving radius and each anchor's bit between densifications; when the
+    anchors change (here half are pruned) both are fitted again: the radius is a fresh fit's and
+    every remaining feature agrees with its bit by the margin."""
+    config = TrainConfig(iterations=10, raster=CPU_RASTER, densify=False)
+    trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="object+bits:16", hidden_anchors=64))
+    private = trainer.model.private
+    assert private.serves_by_radius and trainer.model.anchors.num_anchors > 2 * 64
+    trainer.step()
+    anchors = trainer.model.anchors
+    radius = private.serving_radius.clone()
+    drop = torch.zeros(anchors.num_anchors, dtype=torch.bool)
+    drop[private.box_distance(anchors.xyz).argsort()[::2]] = True  # every other anchor, nearest the box first
+    anchors.prune_anchors(drop, trainer.optimizer)
+    with torch.no_grad():
+        anchors.feat.mul_(-1.0)  # undo the projection: most anchors now disagree with their bit
+    trainer.after_update()
+    refit = private.serving_radius.clone()
+    private.fix_serving(anchors.xyz)
+    assert torch.equal(refit, private.serving_radius) and not torch.equal(refit, radius)
+    logits, bit = private.bit_logits(anchors.feat.detach(), anchors.xyz)
+    sign = trainer.payload.bits.float()[bit] * 2 - 1
+    assert float((sign * logits).min()) >= trainer.secure.bit_margin - 1e-4

@@ -8,7 +8,8 @@ from securegs_warp.cli import main
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import load_scaffold
 from securegs_warp.rasterizer import RasterOptions
-from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, psnr, ssim
+from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, photometric_loss, psnr, ssim
+from securegs_warp.train.losses import batch_photometric_loss
 from securegs_warp.train.base import nonfinite_gradient_counts
 from securegs_warp.render import camera_tensors
 
@@ -193,11 +194,10 @@ def test_render_matches_camera(tiny_scene):
 
 def test_nonfinite_gradients_skip_the_step(tiny_scene):
     """A step with an inf or NaN gradient entry (injected here with hooks, next to a huge finite
-    one) changes nothing: no parameter, no Adam moment; it is reported with the groups at fault.
-    Applied, Adam would turn an anchor trained at learning rate 0 (its position) into NaN."""
+    one) changes nothing: no parameter, no Adam moment; it is reported with the groups at fault."""
     trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, raster=CPU_RASTER, densify=False))
     trainer.step()  # Adam has moments for every parameter
-    poison = {"xyz": float("inf"), "feat": float("nan")}
+    poison = {"offsets": float("inf"), "feat": float("nan")}
     for name, value in poison.items():
         def inject(grad, value=value):
             grad = grad.clone()
@@ -212,9 +212,41 @@ def test_nonfinite_gradients_skip_the_step(tiny_scene):
     assert sum(m is not None for m in moments) >= 4
     stats = trainer.step()
     d = trainer.model.anchors.feat_dim
-    assert stats["nonfinite_grads"] == 3 + d and stats["nonfinite_groups"] == ["feat", "xyz"]
+    k = trainer.model.anchors.n_offsets
+    assert stats["nonfinite_grads"] == 3 * k + d and stats["nonfinite_groups"] == ["feat", "offsets"]
     for p, old, moment in zip(params, before, moments):
         assert torch.equal(p, old)
         assert (moment is None and second_moment(p) is None) or torch.equal(second_moment(p), moment)
         assert p.grad is None
     assert "nonfinite_grads" not in ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, raster=CPU_RASTER)).step()
+
+
+def photometric_loss_single_image(image, target):
+    """The image term as one [H, W, C] image at a time computed it (L1 mean + 3DGS's SSIM, λ 0.2)."""
+    return 0.8 * (image - target).abs().mean() + 0.2 * (1.0 - ssim_2d_float64(image, target).float())
+
+
+def test_batched_image_losses_are_the_separate_ones(tiny_scene):
+    g = torch.Generator().manual_seed(3)
+    images = torch.rand(2, 30, 40, 3, generator=g, requires_grad=True)
+    targets = torch.rand(2, 30, 40, 3, generator=g)
+    batched = batch_photometric_loss(images, targets)
+    separate = torch.stack([photometric_loss(images[i], targets[i]) for i in range(2)])
+    reference = torch.stack([photometric_loss_single_image(images[i], targets[i]) for i in range(2)])
+    assert float((batched - separate).abs().max()) < 1e-6 and float((batched - reference).abs().max()) < 1e-6
+    grad_batched, = torch.autograd.grad(batched.sum(), images)
+    grad_separate, = torch.autograd.grad(separate.sum(), images)
+    assert float((grad_batched - grad_separate).abs().max()) < 1e-6 * float(grad_separate.abs().max())
+    # A trainer's weighted sum over renders, regularizer included, is the separate calls' sum.
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, raster=CPU_RASTER))
+    out = trainer.render(tiny_scene.train[0])
+    hidden = {**out, "image": out["image"].detach().flip(0)}
+    target = trainer._targets[0]
+    renders = [(out, target, 1.0), (hidden, target.flip(1), 0.3)]
+    expected = trainer.image_loss(out, target) + 0.3 * trainer.image_loss(hidden, target.flip(1))
+    assert abs(float(trainer.image_losses(renders)) - float(expected)) < 1e-6
+    # Images of different shapes are summed one by one.
+    small = {**out, "image": out["image"][:20]}
+    renders = [(out, target, 1.0), (small, target[:20], 0.5)]
+    expected = trainer.image_loss(out, target) + 0.5 * trainer.image_loss(small, target[:20])
+    assert abs(float(trainer.image_losses(renders)) - float(expected)) < 1e-6

@@ -241,3 +241,17 @@ def test_a_key_without_its_bit_cell_is_refused_in_one_line(runs, capsys, tmp_pat
         err = capsys.readouterr().err.strip()
         assert str(key) in err and len(err.splitlines()) == 1
         assert ("earlier securegs-warp" if name == "old" else "bit cell") in err
+
+
+def test_kept_projection_is_the_fresh_one_and_the_formula():
+    feat, xyz = anchors()
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
+    fresh = decoder.project(feat, xyz, margin=0.7)
+    kept = decoder.project(feat, xyz, margin=0.7, projection=decoder.projection(xyz))
+    assert torch.equal(fresh, kept)
+    # The formula before the per-anchor constants were kept apart.
+    bit = decoder.anchor_bits(xyz)
+    w = decoder.directions[bit]
+    sign = (decoder.target[bit] * 2 - 1).float()
+    short = (0.7 - sign * 10.0 * (feat * w).sum(dim=1)).clamp_min(0)
+    assert torch.equal(fresh, feat + (sign * short / (10.0 * (w * w).sum(dim=1)))[:, None] * w)

@@ -320,15 +320,15 @@ class GSHiderTrainer(GaussianTrainer):
     def render(self, cam: Camera, camera_index: int | None = None) -> dict:
         return self.model.render(cam, self.config.raster)
 
-    def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
+    def extra_losses(self, index: int, renders: list, branches: dict, step: int) -> dict:
         p = self.payload
         if p.views is not None:
             features, target = branches["public"][1]["features"], p.views[index]
         else:
             features, target = self.model.render_features(self.scene.train[p.image_view], self.config.raster)["image"], p.image
         hidden = self.model.message_decoder(features)
-        return loss + self.hider.hidden_weight * self.image_loss({"image": hidden}, target), {
-            "psnr_hidden": psnr(hidden.detach(), target)}
+        renders.append(({"image": hidden}, target, self.hider.hidden_weight))
+        return {"psnr_hidden": psnr(hidden.detach(), target)}
 
     def model_state(self) -> dict:
         return {**super().model_state(),

@@ -142,7 +142,8 @@ class ScaffoldHeads(nn.Module):
         """
         n, k = feat.shape[0], self.n_offsets
         with_view = torch.cat([feat, ob_view], dim=1)
-        with_dist = torch.cat([feat, ob_view, ob_dist], dim=1)
+        with_dist = (torch.cat([feat, ob_view, ob_dist], dim=1)
+                     if self.add_opacity_dist or self.add_cov_dist or self.add_color_dist else None)
         color_in = with_dist if self.add_color_dist else with_view
         if self.embedding_appearance is not None:
             if camera_index is None:

@@ -157,7 +157,21 @@ def scale_gradient(x: torch.Tensor, factor: float) -> torch.Tensor:
         return x
     if factor == 0.0:
         return x.detach()
-    return x.detach() + factor * (x - x.detach())
+    return _ScaleGradient.apply(x, factor)
+
+
+class _ScaleGradient(torch.autograd.Function):
+    """Identity forward, gradient × factor backward: one op each way (``x.detach() + factor · (x −
+    x.detach())`` computes the same gradient, ``grad · factor``, with five ops and three nodes)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, factor: float) -> torch.Tensor:
+        ctx.factor = factor
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        return grad * ctx.factor, None
 
 
 def camera_center_from_viewmat(viewmat: torch.Tensor) -> torch.Tensor:

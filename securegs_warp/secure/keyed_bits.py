@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import math
 import secrets
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -56,6 +57,17 @@ def keyed_uniform(seed: str, label: str, shape: tuple[int, ...]) -> torch.Tensor
     words = np.frombuffer(_stream(seed, label, 4 * math.prod(shape)), dtype="<u4") >> 8  # exact in float32
     values = (words.astype(np.float64) + 0.5) / 2**23 - 1.0
     return torch.from_numpy(values.astype(np.float32)).reshape(shape)
+
+
+class BitProjection(NamedTuple):
+    """Per-anchor constants of ``KeyedBitDecoder.project`` for N anchors: ``direction`` [N, d] (w of
+    the anchor's bit), ``sign`` [N] (+1 for a 1 bit, −1 for a 0), ``scaled_sign`` [N] (LOGIT_SCALE ·
+    sign), ``scaled_norm2`` [N] (LOGIT_SCALE · |w|²)."""
+
+    direction: torch.Tensor
+    sign: torch.Tensor
+    scaled_sign: torch.Tensor
+    scaled_norm2: torch.Tensor
 
 
 class KeyedBitDecoder(nn.Module):
@@ -123,14 +135,23 @@ class KeyedBitDecoder(nn.Module):
         return LOGIT_SCALE * (feat * self.directions[bit]).sum(dim=1), bit
 
     @torch.no_grad()
-    def project(self, feat: torch.Tensor, xyz: torch.Tensor, margin: float) -> torch.Tensor:
-        """The features [N, d] moved the least (in Euclidean distance) for every anchor's logit to
-        agree with its bit by at least ``margin``: along w_b, and only where it does not yet."""
+    def projection(self, xyz: torch.Tensor) -> BitProjection:
+        """What ``project`` needs of anchors at positions xyz [N, 3] (float32), whatever their features."""
         bit = self.anchor_bits(xyz)
         w = self.directions[bit]
-        sign = (self.target[bit] * 2 - 1).to(feat.dtype)
-        short = (margin - sign * LOGIT_SCALE * (feat * w).sum(dim=1)).clamp_min(0)
-        return feat + (sign * short / (LOGIT_SCALE * (w * w).sum(dim=1)))[:, None] * w
+        sign = (self.target[bit] * 2 - 1).to(w.dtype)
+        return BitProjection(w, sign, sign * LOGIT_SCALE, LOGIT_SCALE * (w * w).sum(dim=1))
+
+    @torch.no_grad()
+    def project(self, feat: torch.Tensor, xyz: torch.Tensor, margin: float,
+                projection: BitProjection | None = None) -> torch.Tensor:
+        """The features [N, d] moved the least (in Euclidean distance) for every anchor's logit to
+        agree with its bit by at least ``margin``: along w_b, and only where it does not yet.
+        projection: ``projection(xyz)`` when the caller kept it (a trainer, between densifications:
+        neither the anchors' bits nor a device-to-host read to confirm them are needed again)."""
+        p = self.projection(xyz) if projection is None else projection
+        short = (margin - p.scaled_sign * (feat * p.direction).sum(dim=1)).clamp_min(0)
+        return feat + (p.sign * short / p.scaled_norm2)[:, None] * p.direction
 
     @torch.no_grad()
     def vote(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

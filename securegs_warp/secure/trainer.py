@@ -69,6 +69,8 @@ class SecureTrainer(ScaffoldTrainer):
         strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
                              and any(p.spec.kind in ("object", "image") for p in self.payloads))
         self.strategy = strategy  # the private heads, built with the model, read its mode
+        self._fitted_positions = None  # the anchor positions after_update last refitted to
+        self._projections = []  # each bit decoder's BitProjection of those positions
         super().__init__(scene, config, device=device, strategy=strategy)
 
     @property
@@ -132,7 +134,7 @@ class SecureTrainer(ScaffoldTrainer):
             return 0.0
         return self.secure.hidden_feature_grad
 
-    def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
+    def extra_losses(self, index: int, renders: list, branches: dict, step: int) -> dict:
         extra, hidden = {}, []
         # Robust training: this step's hidden renders read randomly attacked anchors (the bits are
         # projected into every anchor after the update, see after_update).
@@ -147,12 +149,12 @@ class SecureTrainer(ScaffoldTrainer):
             out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors,
                                      secret=secret, visible=visible)
             target = p.views[view] if p.views is not None else p.image
-            loss = loss + p.weight * self.image_loss(out, target)
+            renders.append((out, target, p.weight))
             hidden.append((out["gaussians"], out["info"], p.weight))
             extra["psnr_hidden" + secret_suffix(secret)] = functools.partial(psnr, out["image"].detach(), target)
         if hidden:
             branches["hidden"] = hidden
-        return loss, extra
+        return extra
 
     @torch.no_grad()
     def after_update(self) -> None:
@@ -162,16 +164,23 @@ class SecureTrainer(ScaffoldTrainer):
         loss's gradient goes through Adam, which turns it into steps of the learning rate on every
         coordinate and cost the cover 0.3-1.2 dB; the projection moves a feature along one
         direction, only as far as needed)."""
-        for private in self.model.secrets:
-            private.fix_serving(self.model.anchors.xyz)
+        anchors = self.model.anchors
+        # Anchor positions train at learning rate 0 (as Scaffold-GS's), so they change only when
+        # densification (or a restore) replaces the tensor: the serving radii and each anchor's bit
+        # are refitted then, not every step (each refit costs a sort and a device-to-host read).
+        if self._fitted_positions is not anchors.xyz:
+            for private in self.model.secrets:
+                private.fix_serving(anchors.xyz)
+            self._projections = [private.bits.projection(anchors.xyz) for private in self.model.secrets
+                                 if private.bits is not None]
+            self._fitted_positions = anchors.xyz
         decoders = [private.bits for private in self.model.secrets if private.bits is not None]
         if not decoders:
             return
-        anchors = self.model.anchors
         feat = anchors.feat.detach()
         for _ in range(PROJECTION_ROUNDS if len(decoders) > 1 else 1):
-            for decoder in decoders:
-                feat = decoder.project(feat, anchors.xyz, self.secure.bit_margin)
+            for decoder, projection in zip(decoders, self._projections):
+                feat = decoder.project(feat, anchors.xyz, self.secure.bit_margin, projection)
         anchors.feat.copy_(feat)
 
     # -- evaluation -----------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from .. import evaluation
 from ..config import TrainConfig, first_difference, from_dict, to_dict
 from ..data import Camera, SceneData
 from ..keys import is_sealed, seal, unseal, write_private
-from .losses import photometric_loss, psnr
+from .losses import batch_photometric_loss, photometric_loss, psnr
 
 
 class ViewTrainer:
@@ -90,8 +90,33 @@ class ViewTrainer:
         return self.model.render(cam, self.config.raster, background=self.background, camera_index=camera_index)
 
     def image_loss(self, out: dict, target: torch.Tensor) -> torch.Tensor:
-        """(1 − α)·L1 + α·(1 − SSIM) of one render."""
-        return photometric_loss(out["image"], target, self.config.ssim_weight)
+        """(1 − α)·L1 + α·(1 − SSIM) of one render, plus its ``regularizer``."""
+        loss = photometric_loss(out["image"], target, self.config.ssim_weight)
+        regularizer = self.regularizer(out)
+        return loss if regularizer is None else loss + regularizer
+
+    def image_losses(self, renders: list) -> torch.Tensor:
+        """Σ weight · ``image_loss(out, target)`` over ``renders`` [(out, target, weight)], the
+        photometric terms of images of one shape in one batched call (a SecureGS step's public and
+        hidden renders; the same sum as separate calls up to float rounding)."""
+        images = [out["image"] for out, _, _ in renders]
+        if len({image.shape for image in images}) > 1:
+            terms = [self.image_loss(out, target) for out, target, _ in renders]
+        else:
+            stacked = (images[0][None], renders[0][1][None]) if len(renders) == 1 else (
+                torch.stack(images), torch.stack([target for _, target, _ in renders]))
+            terms = batch_photometric_loss(*stacked, self.config.ssim_weight).unbind()
+            regularizers = [self.regularizer(out) for out, _, _ in renders]
+            terms = [t if r is None else t + r for t, r in zip(terms, regularizers)]
+        loss = None
+        for term, (_, _, weight) in zip(terms, renders):
+            term = term if weight == 1.0 else weight * term
+            loss = term if loss is None else loss + term
+        return loss
+
+    def regularizer(self, out: dict) -> torch.Tensor | None:
+        """A render's loss term beyond the image (None: none; Scaffold-GS adds its volume term)."""
+        return None
 
     def step(self) -> dict:
         """One training iteration. Returns {"loss", "psnr", size_stats(), what densification changed, ...}.
@@ -106,7 +131,9 @@ class ViewTrainer:
         out = self.render(self.scene.train[index], camera_index=index)
         target = self._targets[index]
         branches = {"public": (out["gaussians"], out["info"])}
-        loss, extra = self.extra_losses(index, self.image_loss(out, target), branches, step)
+        renders = [(out, target, 1.0)]
+        extra = self.extra_losses(index, renders, branches, step)
+        loss = self.image_losses(renders)
         loss.backward()
         bad = nonfinite_gradient_counts(self.optimizer)
         changed = {}
@@ -134,11 +161,12 @@ class ViewTrainer:
         """Hook after each optimizer step (the SecureGS trainer moves the anchor features onto the
         message there)."""
 
-    def extra_losses(self, index: int, loss: torch.Tensor, branches: dict, step: int):
-        """Hook for further losses: (total loss, numbers to report, each a value or a function that
-        gives it at the end of the step); a hidden render adds its (gaussians, info) to ``branches``
-        under "hidden". Plain training has the public loss only."""
-        return loss, {}
+    def extra_losses(self, index: int, renders: list, branches: dict, step: int) -> dict:
+        """Hook for further losses: appends (out, target, weight) to ``renders`` for each further render
+        whose weighted ``image_loss`` joins the public one's (``image_losses``), and returns numbers to
+        report, each a value or a function that gives it at the end of the step; a hidden render adds
+        its (gaussians, info) to ``branches`` under "hidden". Plain training has the public loss only."""
+        return {}
 
     @torch.no_grad()
     def evaluate(self, cameras: list[Camera] | None = None, timing_repeats: int = 3, with_lpips: bool = False,
@@ -233,9 +261,8 @@ def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int
     The trainer skips a step with any such entry: no optimizer step, and no densification step
     either (neither its statistics nor, on an update step, growth and pruning, which wait for the
     next update). Both ways of going on can damage the model:
-    - Applied, an inf or NaN reaches Adam, whose update of an anchor trained at learning rate 0
-      (its position, as in Scaffold-GS) is 0 · m/√v = NaN for good; the anchor drops out of every
-      view and is never pruned.
+    - Applied, an inf or NaN reaches Adam, whose update of a parameter trained at learning rate 0
+      is 0 · m/√v = NaN for good (an anchor would drop out of every view and never be pruned).
     - Zeroing just those entries applies the rest of a gradient computed through an overflow, whose
       finite entries may be huge as well; one huge gradient fills Adam's second moment, and the
       entry then barely moves for thousands of steps. Mixed-precision training skips such steps for

@@ -23,7 +23,7 @@ def _gaussian_window(channels: int, device: torch.device) -> torch.Tensor:
 
 
 def _blur(x: torch.Tensor) -> torch.Tensor:
-    """Each channel of x [1, K, H, W] convolved with the 11×11 Gaussian window, zero padded: a row
+    """Each channel of x [B, K, H, W] convolved with the 11×11 Gaussian window, zero padded: a row
     pass then a column pass (22 taps a pixel instead of 121; with zero padding the separable blur
     is the 2-D one exactly, up to float rounding)."""
     k = x.shape[1]
@@ -38,17 +38,25 @@ def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     C2 = 0.03², averaged over pixels and channels — the ``ssim`` of the 3DGS code base."""
     if image.shape != target.shape or image.ndim != 3:
         raise ValueError(f"ssim needs two [H, W, C] images of one shape, got {list(image.shape)}, {list(target.shape)}")
-    c = image.shape[-1]
-    a = image.permute(2, 0, 1)[None]
-    b = target.permute(2, 0, 1)[None]
-    # The five local statistics in one blur: [1, 5C, H, W] → means, second moments.
+    return batch_ssim(image[None], target[None])[0]
+
+
+def batch_ssim(images: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """[B] mean SSIM of each pair of [B, H, W, C] images (as ``ssim``), all B in one blur."""
+    if images.shape != targets.shape or images.ndim != 4:
+        raise ValueError(f"batch_ssim needs two [B, H, W, C] batches of one shape, got {list(images.shape)}, "
+                         f"{list(targets.shape)}")
+    c = images.shape[-1]
+    a = images.permute(0, 3, 1, 2)
+    b = targets.permute(0, 3, 1, 2)
+    # The five local statistics in one blur: [B, 5C, H, W] → means, second moments.
     mu_a, mu_b, aa, bb, ab = _blur(torch.cat([a, b, a * a, b * b, a * b], dim=1)).split(c, dim=1)
     var_a = aa - mu_a**2
     var_b = bb - mu_b**2
     cov = ab - mu_a * mu_b
     c1, c2 = 0.01**2, 0.03**2
     ssim_map = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
-    return ssim_map.mean()
+    return ssim_map.mean(dim=(1, 2, 3))
 
 
 def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
@@ -59,7 +67,14 @@ def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
 
 def photometric_loss(image: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
     """(1 − λ)·L1 + λ·(1 − SSIM), λ = 0.2: the image term of Scaffold-GS and SecureGS."""
-    return (1.0 - ssim_weight) * (image - target).abs().mean() + ssim_weight * (1.0 - ssim(image, target))
+    return batch_photometric_loss(image[None], target[None], ssim_weight)[0]
+
+
+def batch_photometric_loss(images: torch.Tensor, targets: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
+    """[B] ``photometric_loss`` of each pair of [B, H, W, C] images, in one pass over the batch (a
+    SecureGS step's public and hidden renders: half the launches of two calls)."""
+    l1 = (images - targets).abs().mean(dim=(1, 2, 3))
+    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - batch_ssim(images, targets))
 
 
 def volume_loss(scales: torch.Tensor) -> torch.Tensor:

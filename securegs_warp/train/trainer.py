@@ -68,6 +68,10 @@ class ScaffoldTrainer(ViewTrainer):
     def _make_optimizer(self) -> torch.optim.Adam:
         c = self.config
         offset_lr = c.offset_lr[0] * self.spatial_scale
+        # Positions train at learning rate 0 for the whole run, so their gradient would never be used:
+        # not computing it spares the backward every path through the view directions to the anchor
+        # positions (densification replaces the parameter with the same requires_grad).
+        self.model.anchors.xyz.requires_grad_(False)
         groups = anchor_param_groups(self.model.anchors, {
             "xyz": 0.0,  # Scaffold-GS keeps anchors where voxelisation put them
             "feat": c.feature_lr, "offsets": offset_lr, "hidden_offsets": offset_lr,
@@ -87,9 +91,9 @@ class ScaffoldTrainer(ViewTrainer):
             elif name in self.head_groups():
                 group["lr"] = exponential_lr(*self._mlp_schedule(name), c.iterations, step)
 
-    def image_loss(self, out: dict, target: torch.Tensor) -> torch.Tensor:
-        """(1 − α)·L1 + α·(1 − SSIM) + β·volume for one render (the paper's ℓ_ori and ℓ_hid)."""
-        return super().image_loss(out, target) + self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
+    def regularizer(self, out: dict) -> torch.Tensor:
+        """β·volume of one render: with the photometric term, the paper's ℓ_ori and ℓ_hid."""
+        return self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
 
     def densify(self, step: int, branches: dict) -> dict:
         return self.strategy.step_post_backward(self.model.anchors, self.optimizer, self.strategy_state, step,
