@@ -1,6 +1,9 @@
 """Render one view of anchors with a set of heads: decode the visible anchors, rasterize."""
 from __future__ import annotations
 
+import weakref
+
+import numpy as np
 import torch
 
 from .data import Camera
@@ -9,10 +12,25 @@ from .model.neural_gaussians import camera_center_from_viewmat
 from .rasterizer import RasterOptions, rasterize
 
 
+# Each camera's matrices on each device, with the values they were made from: training renders the
+# same views again and again (a SecureGS step twice), and a fresh copy is a host-to-device transfer
+# per matrix. An entry goes with its camera.
+_DEVICE_CAMERAS: dict = {}
+
+
 def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """(viewmat [4, 4], K [3, 3]) float32 tensors of a camera on ``device``."""
-    return (torch.as_tensor(cam.viewmat, dtype=torch.float32, device=device),
-            torch.as_tensor(cam.K, dtype=torch.float32, device=device))
+    """(viewmat [4, 4], K [3, 3]) float32 tensors of a camera on ``device`` (kept per camera and
+    device while the camera's matrices keep their values; read them, do not write them)."""
+    key = (id(cam), torch.device(device))
+    kept = _DEVICE_CAMERAS.get(key)
+    if (kept is not None and kept[0]() is cam and np.array_equal(kept[1], cam.viewmat)
+            and np.array_equal(kept[2], cam.K)):
+        return kept[3]
+    tensors = (torch.as_tensor(cam.viewmat, dtype=torch.float32, device=device),
+               torch.as_tensor(cam.K, dtype=torch.float32, device=device))
+    _DEVICE_CAMERAS[key] = (weakref.ref(cam, lambda _: _DEVICE_CAMERAS.pop(key, None)),
+                            np.array(cam.viewmat), np.array(cam.K), tensors)
+    return tensors
 
 
 def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, options: RasterOptions | None = None,

@@ -120,6 +120,8 @@ def test_serving_is_a_count_inside_the_box_and_its_radius_lies_between_anchors()
     xyz = torch.cat([inside, outside])
     private.fix_serving(xyz)
     assert private.serving_mask(xyz).tolist() == [True, True, False, True, False, False, False]  # nearest the centre
+    xyz[0] = torch.tensor([5.0, 0.0, 0.0])  # moved in place: the kept mask is not reused
+    assert private.serving_mask(xyz).tolist() == [False, True, False, True, False, False, False]
     private.fix_serving(outside)  # fewer anchors than `serving`: every one serves
     assert private.serving_radius.item() == float("inf") and private.serving_mask(xyz).all()
 

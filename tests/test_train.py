@@ -1,4 +1,5 @@
 """Training: losses, the densification strategy's invariants, checkpoints, resume and the CLI."""
+import dataclasses
 import json
 
 import pytest
@@ -190,6 +191,13 @@ def test_nonfinite_gradient_counts(entries, expected):
 def test_render_matches_camera(tiny_scene):
     viewmat, K = camera_tensors(tiny_scene.train[0], "cpu")
     assert viewmat.shape == (4, 4) and K.shape == (3, 3)
+    # Kept per camera while its matrices keep their values; an edited camera gets fresh tensors.
+    cam = dataclasses.replace(tiny_scene.train[0], viewmat=tiny_scene.train[0].viewmat.copy())
+    kept = camera_tensors(cam, "cpu")
+    assert camera_tensors(cam, "cpu") is kept and torch.equal(kept[0], viewmat)
+    cam.viewmat[0, 3] += 1.0
+    moved, same_k = camera_tensors(cam, "cpu")
+    assert float(moved[0, 3] - viewmat[0, 3]) == 1.0 and torch.equal(same_k, K)
 
 
 def test_nonfinite_gradients_skip_the_step(tiny_scene):
