@@ -12,6 +12,7 @@ the GPU work it queued plus its host time, and nested sections are subtracted fr
 """
 from __future__ import annotations
 
+import bisect
 import contextlib
 import time
 
@@ -226,18 +227,19 @@ def count_ops(trainer, steps: int) -> dict:
     events = list(prof.events())
     marks = sorted(((e.time_range.start, e.time_range.end, e.name[len(_SECTION_MARK):]) for e in events
                     if e.name.startswith(_SECTION_MARK)), key=lambda m: m[0])
+    starts = [lo for lo, _, _ in marks]
     counts = {name: dict.fromkeys(COUNTS, 0.0) for name in SECTIONS}
     for event in events:
         kind = _count_kind(event)
         if kind is None:
             continue
-        start, section = event.time_range.start, None
-        for lo, hi, name in marks:  # sorted by start: the last range holding it is the innermost
-            if lo > start:
+        # Sections nest: the innermost holding the event is the latest-starting one that holds it.
+        start, section = event.time_range.start, "other"
+        for i in range(bisect.bisect_right(starts, start) - 1, -1, -1):
+            if start <= marks[i][1]:
+                section = marks[i][2]
                 break
-            if start <= hi:
-                section = name
-        counts[section or "other"][kind] += 1
+        counts[section][kind] += 1
     for name, n in counter.warp_launches.items():
         counts[name]["warp launches"] += n
     per_step = {name: {kind: n / steps for kind, n in c.items()} for name, c in counts.items()}
