@@ -78,3 +78,28 @@ def test_invalid_options_are_refused():
         ScaffoldHeads(30, 10, use_feat_bank=True)
     with pytest.raises(ValueError, match="num_cameras"):
         ScaffoldHeads(32, 10, appearance_dim=32)
+
+
+@pytest.mark.parametrize("options", [{}, {"add_cov_dist": True}, {"width": 24}])
+def test_shared_first_layer_is_each_head_on_its_own(options):
+    """Heads that read one input run their first layers as one stacked matmul: the outputs and every
+    gradient are those of each MLP applied on its own (Scaffold-GS's order), up to float rounding."""
+    torch.manual_seed(0)
+    heads = ScaffoldHeads(8, 4, **options)
+    g = torch.Generator().manual_seed(1)
+    feat = torch.randn(50, 8, generator=g, requires_grad=True)
+    ob_view = torch.nn.functional.normalize(torch.randn(50, 3, generator=g), dim=1)
+    ob_dist = torch.rand(50, 1, generator=g) + 1.0
+    outputs = heads(feat, ob_view, ob_dist)
+    with_view, with_dist = torch.cat([feat, ob_view], 1), torch.cat([feat, ob_view, ob_dist], 1)
+    reference = (heads.opacity_mlp(with_view), heads.cov_mlp(with_dist if heads.add_cov_dist else with_view),
+                 heads.color_mlp(with_view))
+    params = [feat, *heads.parameters()]
+    weights = [torch.randn(o.shape, generator=g) for o in outputs]
+    grads = torch.autograd.grad(sum((o * w).sum() for o, w in zip(outputs, weights)), params)
+    ref_grads = torch.autograd.grad(sum((r.reshape(o.shape) * w).sum()
+                                        for r, o, w in zip(reference, outputs, weights)), params)
+    for out, ref in zip(outputs, reference):
+        assert float((out.reshape(ref.shape) - ref).abs().max()) < 1e-6
+    for grad, ref in zip(grads, ref_grads):
+        assert float((grad - ref).abs().max()) < 1e-5 * max(1.0, float(ref.abs().max()))

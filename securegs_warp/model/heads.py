@@ -150,7 +150,30 @@ class ScaffoldHeads(nn.Module):
                 raise ValueError("these heads have an appearance embedding: pass camera_index")
             index = torch.full((n,), int(camera_index), dtype=torch.long, device=feat.device)
             color_in = torch.cat([color_in, self.embedding_appearance(index)], dim=1)
-        neural_opacity = self.opacity_mlp(with_dist if self.add_opacity_dist else with_view)
-        cov = self.cov_mlp(with_dist if self.add_cov_dist else with_view).view(n, k, 7)
-        color = self.color_mlp(color_in).view(n, k, 3)
-        return neural_opacity, cov, color
+        mlps = (self.opacity_mlp, self.cov_mlp, self.color_mlp)
+        inputs = (with_dist if self.add_opacity_dist else with_view, with_dist if self.add_cov_dist else with_view,
+                  color_in)
+        if inputs[0] is inputs[1] is inputs[2]:
+            hidden = shared_first_layers(inputs[0], mlps)
+        else:
+            hidden = [mlp[1](mlp[0](x)) for mlp, x in zip(mlps, inputs)]
+        neural_opacity, cov, color = (_after_first_layer(mlp, h) for mlp, h in zip(mlps, hidden))
+        return neural_opacity, cov.view(n, k, 7), color.view(n, k, 3)
+
+
+def shared_first_layers(x: torch.Tensor, mlps) -> list[torch.Tensor]:
+    """``relu(mlp[0](x))`` [N, width_i] of each ``make_mlp`` head in ``mlps`` that reads the same
+    input x [N, C], as one matmul with their weights stacked: one launch instead of one per head
+    each way (the gradient of x is one matmul, not one per head and their sum); the same values up
+    to float rounding."""
+    first = [mlp[0] for mlp in mlps]
+    weight = torch.cat([layer.weight for layer in first])
+    bias = torch.cat([layer.bias for layer in first]) if first[0].bias is not None else None
+    hidden = torch.nn.functional.linear(x, weight, bias).relu_()
+    return hidden.split([layer.out_features for layer in first], dim=1)
+
+
+def _after_first_layer(mlp: nn.Sequential, hidden: torch.Tensor) -> torch.Tensor:
+    """The rest of a ``make_mlp`` head (second Linear, then its activation if any) on its hidden layer."""
+    out = mlp[2](hidden)
+    return mlp[3](out) if len(mlp) > 3 else out
