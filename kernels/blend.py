@@ -19,8 +19,15 @@ the transmittance to ≤ t_min; colour = Σ cᵢαᵢTᵢ + T·background.
 Accuracy-for-time variants (compile-time, see ``blend_kernels``): colours read from a float16 table
 (half the bytes per Gaussian in global and shared memory; arithmetic stays float32 and the colour
 gradients are written in float32), and Warp's fast math.
+
+Packed records (``blend_kernels(..., packed=True)``, written by ``pack_kernel`` after projection):
+each batch is gathered with one ``tile_load_indexed`` of a float32 row per Gaussian instead of one
+per field. In Warp 1.19 each indexed load into shared memory is a register gather, a store and a
+block barrier (and one more barrier before a reload), so the per-field gathers serialise four or
+five global-memory latencies per batch; one record row costs one.
 """
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -83,16 +90,80 @@ _XY, _CONIC, _OPACITY, _COLOR = 0, 2, 5, 6
 # Upper bound on the shared memory of one batch (bytes), to pick the batch size for wide colours.
 _BATCH_SHARED_BYTES = 24 * 1024
 
+# Packed record of one Gaussian (float32 words): x, y, conic a, b, c, opacity, depth, then its
+# colours when they are float32, padded to a multiple of 4 words so that rows are 16-byte aligned.
+# float16 colours stay in their own [N, C] table (a second indexed load per batch): widened into
+# the float32 record they would take twice the bytes, which float16 storage exists to save.
+_R_XY, _R_CONIC, _R_OPACITY, _R_DEPTH, _R_COLOR = 0, 2, 5, 6, 7
+
+
+def colors_in_record(color_storage: str) -> bool:
+    """Whether the packed record holds the colours (float32 storage) or they stay in their table."""
+    return color_storage == "float32"
+
+
+def record_width(channels: int, color_storage: str) -> int:
+    """float32 words per packed record: ``_R_COLOR`` (+ C colours when in the record), rounded up to 4."""
+    words = _R_COLOR + (channels if colors_in_record(color_storage) else 0)
+    return (words + 3) // 4 * 4
+
+
+@wp.func
+def record_geometry(src: Any, row: int):
+    """(mean2d, conic, opacity) of row ``row`` of a packed record table or its shared-memory batch."""
+    return (wp.vec2(src[row, _R_XY], src[row, _R_XY + 1]),
+            wp.vec3(src[row, _R_CONIC], src[row, _R_CONIC + 1], src[row, _R_CONIC + 2]),
+            src[row, _R_OPACITY])
+
+
+@functools.lru_cache(maxsize=None)
+def pack_kernel(channels: int, color_storage: str):
+    """Kernel writing each Gaussian's packed record ``records`` [N, record_width] from the
+    projection's outputs (and the colours when ``colors_in_record``), launched with dim=N."""
+    C = channels
+    WITH_COLORS = colors_in_record(color_storage)
+    ColorT = COLOR_STORAGES[color_storage]
+
+    def pack(
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        depths: wp.array(dtype=float),
+        colors: wp.array2d(dtype=ColorT),
+        records: wp.array2d(dtype=float),
+    ):
+        i = wp.tid()
+        xy = means2d[i]
+        cn = conics[i]
+        records[i, _R_XY] = xy[0]
+        records[i, _R_XY + 1] = xy[1]
+        records[i, _R_CONIC] = cn[0]
+        records[i, _R_CONIC + 1] = cn[1]
+        records[i, _R_CONIC + 2] = cn[2]
+        records[i, _R_OPACITY] = opacities[i]
+        records[i, _R_DEPTH] = depths[i]
+        if wp.static(WITH_COLORS):
+            for c in range(C):
+                records[i, _R_COLOR + c] = float(colors[i, c])
+
+    pack.__name__ = pack.__qualname__ = f"pack_records_c{C}_{color_storage}"
+    return wp.kernel(pack, enable_backward=False, module="unique")
+
 
 # On the CPU (one thread per block, direct reads) the batch only paces the walk over the list.
 CPU_BATCH = 32
 
 
-def batch_size(channels: int, block: int, with_depth: bool, color_storage: str) -> int:
+def batch_size(channels: int, block: int, with_depth: bool, color_storage: str, packed: bool = False) -> int:
     """Gaussians gathered per batch: one per thread of the block (at least 32), fewer when the
-    feature channels are wide enough to overflow the shared-memory budget."""
+    feature channels are wide enough to overflow the shared-memory budget (``packed``: the batch
+    holds records of ``record_width`` words)."""
     color_bytes = wp.types.type_size_in_bytes(COLOR_STORAGES[color_storage])
-    per_gaussian = 4 * (1 + 2 + 3 + 1 + int(with_depth)) + color_bytes * channels
+    if packed:
+        separate = 0 if colors_in_record(color_storage) else color_bytes * channels
+        per_gaussian = 4 * (1 + record_width(channels, color_storage)) + separate
+    else:
+        per_gaussian = 4 * (1 + 2 + 3 + 1 + int(with_depth)) + color_bytes * channels
     b = max(block, 32)
     while b > 32 and b * per_gaussian > _BATCH_SHARED_BYTES:
         b //= 2
@@ -101,7 +172,8 @@ def batch_size(channels: int, block: int, with_depth: bool, color_storage: str) 
 
 @functools.lru_cache(maxsize=None)
 def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
-                  color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0):
+                  color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0,
+                  packed: bool = False):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 
@@ -118,6 +190,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     ``max_registers``: registers per thread the CUDA backward may use (``__maxnreg__``; 0: the
     compiler's choice). Fewer registers let more blocks share a multiprocessor, at the risk of
     spilling to local memory; the CPU ignores it.
+    ``packed``: read each Gaussian from its row of ``records`` [N, record_width] (``pack_kernel``),
+    gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
+    (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
+    not packed) and read the per-field arrays only for what the record lacks.
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
@@ -129,6 +205,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     DEPTH = 1 if with_depth else 0
     NG = _COLOR + C + DEPTH
     WARP_WALK = warp_walk
+    PACKED = packed
+    P = record_width(C, color_storage)
+    # Colours read from the record (else from their own table, tile or array).
+    REC_COLOR = packed and colors_in_record(color_storage)
     ColorVec = wp.types.vector(length=C, dtype=wp.float32)
     GradVec = wp.types.vector(length=NG, dtype=wp.float32)
 
@@ -140,6 +220,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         opacities: wp.array(dtype=float),
         colors: wp.array2d(dtype=ColorT),
         depths: wp.array(dtype=float),
+        records: wp.array2d(dtype=float),
         background: wp.array(dtype=float),
         width: int,
         height: int,
@@ -177,23 +258,32 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 if wp.tile_extract(n_done, 0) == wp.block_dim():
                     break
                 ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
-                xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
-                if wp.static(DEPTH == 1):
-                    dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                if wp.static(PACKED):
+                    rec_t = wp.tile_load_indexed(records, ids, shape=(B, P), offset=(0, 0), axis=0, storage="shared")
+                else:
+                    xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                    cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                    op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                    if wp.static(DEPTH == 1):
+                        dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                if wp.static(not REC_COLOR):
+                    col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
             elif done:
                 break
             count = wp.min(B, end - b0)
             if not done:
                 for j in range(count):
-                    if wp.static(COOP):
+                    if wp.static(not COOP):
+                        gid = sorted_ids[b0 + j]
+                    if wp.static(PACKED and COOP):
+                        xy, cn, op = record_geometry(rec_t, j)
+                    elif wp.static(PACKED):
+                        xy, cn, op = record_geometry(records, gid)
+                    elif wp.static(COOP):
                         xy = xy_t[j]
                         cn = cn_t[j]
                         op = op_t[j]
                     else:
-                        gid = sorted_ids[b0 + j]
                         xy = means2d[gid]
                         cn = conics[gid]
                         op = opacities[gid]
@@ -209,15 +299,25 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         w = alpha * T
                         for c in range(C):
                             # float(): widen a float16 colour (the identity for float32).
-                            if wp.static(COOP):
-                                acc[c] = acc[c] + float(col_t[j, c]) * w
+                            if wp.static(REC_COLOR and COOP):
+                                col = rec_t[j, _R_COLOR + c]
+                            elif wp.static(REC_COLOR):
+                                col = records[gid, _R_COLOR + c]
+                            elif wp.static(COOP):
+                                col = float(col_t[j, c])
                             else:
-                                acc[c] = acc[c] + float(colors[gid, c]) * w
+                                col = float(colors[gid, c])
+                            acc[c] = acc[c] + col * w
                         if wp.static(DEPTH == 1):
-                            if wp.static(COOP):
-                                acc_depth += dep_t[j] * w
+                            if wp.static(PACKED and COOP):
+                                dep = rec_t[j, _R_DEPTH]
+                            elif wp.static(PACKED):
+                                dep = records[gid, _R_DEPTH]
+                            elif wp.static(COOP):
+                                dep = dep_t[j]
                             else:
-                                acc_depth += depths[gid] * w
+                                dep = depths[gid]
+                            acc_depth += dep * w
                         T = next_t
                         last = b0 + j
         if inside:
@@ -237,6 +337,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         opacities: wp.array(dtype=float),
         colors: wp.array2d(dtype=ColorT),
         depths: wp.array(dtype=float),
+        records: wp.array2d(dtype=float),
         background: wp.array(dtype=float),
         width: int,
         height: int,
@@ -303,12 +404,16 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
             count = b1 - b0
             if wp.static(COOP):
                 ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
-                xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
-                if wp.static(DEPTH == 1):
-                    dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                if wp.static(PACKED):
+                    rec_t = wp.tile_load_indexed(records, ids, shape=(B, P), offset=(0, 0), axis=0, storage="shared")
+                else:
+                    xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                    cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                    op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                    if wp.static(DEPTH == 1):
+                        dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                if wp.static(not REC_COLOR):
+                    col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
             # Entries b0 .. b0 + n_walk - 1 of this batch: none past the warp's last (may be none).
             n_walk = wp.min(count, warp_hi - b0)
             for jj in range(n_walk):
@@ -320,7 +425,11 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 else:
                     gid = sorted_ids[b0 + j]
                 if b0 + j <= last:
-                    if wp.static(COOP):
+                    if wp.static(PACKED and COOP):
+                        xy, cn, op = record_geometry(rec_t, j)
+                    elif wp.static(PACKED):
+                        xy, cn, op = record_geometry(records, gid)
+                    elif wp.static(COOP):
                         xy = xy_t[j]
                         cn = cn_t[j]
                         op = op_t[j]
@@ -340,7 +449,11 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         w = alpha * T
                         d_alpha = float(0.0)
                         for c in range(C):
-                            if wp.static(COOP):
+                            if wp.static(REC_COLOR and COOP):
+                                col = rec_t[j, _R_COLOR + c]
+                            elif wp.static(REC_COLOR):
+                                col = records[gid, _R_COLOR + c]
+                            elif wp.static(COOP):
                                 col = float(col_t[j, c])
                             else:
                                 col = float(colors[gid, c])
@@ -348,7 +461,11 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             d_alpha += (col * T - buf[c] * ra) * v_img[c]
                             buf[c] = buf[c] + col * w
                         if wp.static(DEPTH == 1):
-                            if wp.static(COOP):
+                            if wp.static(PACKED and COOP):
+                                dep = rec_t[j, _R_DEPTH]
+                            elif wp.static(PACKED):
+                                dep = records[gid, _R_DEPTH]
+                            elif wp.static(COOP):
                                 dep = dep_t[j]
                             else:
                                 dep = depths[gid]
@@ -378,7 +495,8 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             wp.atomic_add(v_depths, gid, g[_COLOR + C])
 
     tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
-           f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}")
+           f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}"
+           f"{'_packed' if packed else ''}")
     backward_tag = tag + (f"_r{max_registers}" if max_registers else "")
     forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
     backward.__name__ = backward.__qualname__ = f"blend_backward_{backward_tag}"
