@@ -109,16 +109,25 @@ def record_width(channels: int, color_storage: str) -> int:
 
 
 @wp.func
+def record_word(src: Any, row: int, k: int):
+    """Word ``k`` of row ``row`` of packed records: the [N, P / 4] vec4 table or a batch of it in
+    shared memory. vec4 columns make the batch gather 16 bytes a load instead of 4."""
+    return src[row, k // 4][k % 4]
+
+
+@wp.func
 def record_geometry(src: Any, row: int):
-    """(mean2d, conic, opacity) of row ``row`` of a packed record table or its shared-memory batch."""
-    return (wp.vec2(src[row, _R_XY], src[row, _R_XY + 1]),
-            wp.vec3(src[row, _R_CONIC], src[row, _R_CONIC + 1], src[row, _R_CONIC + 2]),
-            src[row, _R_OPACITY])
+    """(mean2d, conic, opacity) of row ``row`` of packed records (see ``record_word``)."""
+    return (wp.vec2(record_word(src, row, _R_XY), record_word(src, row, _R_XY + 1)),
+            wp.vec3(record_word(src, row, _R_CONIC), record_word(src, row, _R_CONIC + 1),
+                    record_word(src, row, _R_CONIC + 2)),
+            record_word(src, row, _R_OPACITY))
 
 
 @functools.lru_cache(maxsize=None)
 def pack_kernel(channels: int, color_storage: str):
-    """Kernel writing each Gaussian's packed record ``records`` [N, record_width] from the
+    """Kernel writing each Gaussian's packed record into ``records`` [N, record_width] (float32
+    words; the blending kernels read the same memory as [N, record_width / 4] vec4) from the
     projection's outputs (and the colours when ``colors_in_record``), launched with dim=N."""
     C = channels
     WITH_COLORS = colors_in_record(color_storage)
@@ -190,7 +199,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     ``max_registers``: registers per thread the CUDA backward may use (``__maxnreg__``; 0: the
     compiler's choice). Fewer registers let more blocks share a multiprocessor, at the risk of
     spilling to local memory; the CPU ignores it.
-    ``packed``: read each Gaussian from its row of ``records`` [N, record_width] (``pack_kernel``),
+    ``packed``: read each Gaussian from its row of ``records`` [N, record_width / 4] vec4 (``pack_kernel``),
     gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
     (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
     not packed) and read the per-field arrays only for what the record lacks.
@@ -206,7 +215,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     NG = _COLOR + C + DEPTH
     WARP_WALK = warp_walk
     PACKED = packed
-    P = record_width(C, color_storage)
+    Q = record_width(C, color_storage) // 4  # vec4 columns of a record
     # Colours read from the record (else from their own table, tile or array).
     REC_COLOR = packed and colors_in_record(color_storage)
     ColorVec = wp.types.vector(length=C, dtype=wp.float32)
@@ -220,7 +229,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         opacities: wp.array(dtype=float),
         colors: wp.array2d(dtype=ColorT),
         depths: wp.array(dtype=float),
-        records: wp.array2d(dtype=float),
+        records: wp.array2d(dtype=wp.vec4),
         background: wp.array(dtype=float),
         width: int,
         height: int,
@@ -259,7 +268,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                     break
                 ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
                 if wp.static(PACKED):
-                    rec_t = wp.tile_load_indexed(records, ids, shape=(B, P), offset=(0, 0), axis=0, storage="shared")
+                    rec_t = wp.tile_load_indexed(records, ids, shape=(B, Q), offset=(0, 0), axis=0, storage="shared")
                 else:
                     xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
                     cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
@@ -300,9 +309,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         for c in range(C):
                             # float(): widen a float16 colour (the identity for float32).
                             if wp.static(REC_COLOR and COOP):
-                                col = rec_t[j, _R_COLOR + c]
+                                col = record_word(rec_t, j, _R_COLOR + c)
                             elif wp.static(REC_COLOR):
-                                col = records[gid, _R_COLOR + c]
+                                col = record_word(records, gid, _R_COLOR + c)
                             elif wp.static(COOP):
                                 col = float(col_t[j, c])
                             else:
@@ -310,9 +319,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             acc[c] = acc[c] + col * w
                         if wp.static(DEPTH == 1):
                             if wp.static(PACKED and COOP):
-                                dep = rec_t[j, _R_DEPTH]
+                                dep = record_word(rec_t, j, _R_DEPTH)
                             elif wp.static(PACKED):
-                                dep = records[gid, _R_DEPTH]
+                                dep = record_word(records, gid, _R_DEPTH)
                             elif wp.static(COOP):
                                 dep = dep_t[j]
                             else:
@@ -337,7 +346,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         opacities: wp.array(dtype=float),
         colors: wp.array2d(dtype=ColorT),
         depths: wp.array(dtype=float),
-        records: wp.array2d(dtype=float),
+        records: wp.array2d(dtype=wp.vec4),
         background: wp.array(dtype=float),
         width: int,
         height: int,
@@ -405,7 +414,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
             if wp.static(COOP):
                 ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
                 if wp.static(PACKED):
-                    rec_t = wp.tile_load_indexed(records, ids, shape=(B, P), offset=(0, 0), axis=0, storage="shared")
+                    rec_t = wp.tile_load_indexed(records, ids, shape=(B, Q), offset=(0, 0), axis=0, storage="shared")
                 else:
                     xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
                     cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
@@ -450,9 +459,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         d_alpha = float(0.0)
                         for c in range(C):
                             if wp.static(REC_COLOR and COOP):
-                                col = rec_t[j, _R_COLOR + c]
+                                col = record_word(rec_t, j, _R_COLOR + c)
                             elif wp.static(REC_COLOR):
-                                col = records[gid, _R_COLOR + c]
+                                col = record_word(records, gid, _R_COLOR + c)
                             elif wp.static(COOP):
                                 col = float(col_t[j, c])
                             else:
@@ -462,9 +471,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             buf[c] = buf[c] + col * w
                         if wp.static(DEPTH == 1):
                             if wp.static(PACKED and COOP):
-                                dep = rec_t[j, _R_DEPTH]
+                                dep = record_word(rec_t, j, _R_DEPTH)
                             elif wp.static(PACKED):
-                                dep = records[gid, _R_DEPTH]
+                                dep = record_word(records, gid, _R_DEPTH)
                             elif wp.static(COOP):
                                 dep = dep_t[j]
                             else:

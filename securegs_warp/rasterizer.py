@@ -388,10 +388,14 @@ class RenderPlan:
                 "depth_bits": wp.from_torch(o["depths"].view(torch.int32), dtype=wp.int32),
                 # Allocated by torch, like every buffer here: in order on torch's stream.
                 "ranges": _wp(torch.empty(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
-                # Packed per-Gaussian records the blending kernels gather from (gather="packed").
-                "records": _wp(torch.empty(n, record_width(c, opts.color_storage), **f32), wp.float32)
-                if opts.gather == "packed" else None,
             }
+            w_out["records"] = None
+            if opts.gather == "packed":
+                # Packed per-Gaussian records: written word by word by the packing kernel ([N, P]),
+                # gathered in 16-byte columns by the blending kernels ([N, P / 4] vec4).
+                words = torch.empty(n, record_width(c, opts.color_storage), **f32)
+                w_out["record_words"] = _wp(words, wp.float32)
+                w_out["records"] = _wp(words.view(n, words.shape[1] // 4, 4), wp.vec4)
         self.w = {**w_in, **w_out}
         if g:
             self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
@@ -412,7 +416,8 @@ class RenderPlan:
         self._blend = blend_kernels_for(opts, c, with_depth, cooperative)
         self._pack = None if opts.gather != "packed" else dict(
             kernel=pack_kernel(c, opts.color_storage), dim=n,
-            inputs=[w["means2d"], w["conics"], w["opac_out"], w["depths"], w["color_table"]], outputs=[w["records"]])
+            inputs=[w["means2d"], w["conics"], w["opac_out"], w["depths"], w["color_table"]],
+            outputs=[w["record_words"]])
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
