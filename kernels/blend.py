@@ -182,7 +182,7 @@ def batch_size(channels: int, block: int, with_depth: bool, color_storage: str, 
 @functools.lru_cache(maxsize=None)
 def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
                   color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0,
-                  packed: bool = False):
+                  packed: bool = False, forward_max_registers: int = 0):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 
@@ -203,6 +203,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
     (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
     not packed) and read the per-field arrays only for what the record lacks.
+    ``forward_max_registers``: the same cap for the CUDA forward.
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
@@ -506,10 +507,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
            f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}"
            f"{'_packed' if packed else ''}")
-    backward_tag = tag + (f"_r{max_registers}" if max_registers else "")
-    forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
-    backward.__name__ = backward.__qualname__ = f"blend_backward_{backward_tag}"
     # fast_math is a module option: each variant gets its own module.
     options = dict(enable_backward=False, module="unique", module_options={"fast_math": fast_math})
-    registers = {"cuda_max_registers": max_registers} if max_registers else {}
-    return wp.kernel(forward, **options), wp.kernel(backward, **options, **registers)
+    kernels = []
+    for fn, name, cap in ((forward, "forward", forward_max_registers), (backward, "backward", max_registers)):
+        fn.__name__ = fn.__qualname__ = f"blend_{name}_{tag}" + (f"_r{cap}" if cap else "")
+        kernels.append(wp.kernel(fn, **options, **({"cuda_max_registers": cap} if cap else {})))
+    return tuple(kernels)

@@ -8,8 +8,8 @@ import torch
 
 from securegs_warp import RasterOptions, UnknownOptionError, rasterize, reference
 from securegs_warp.raster_cases import (
-    DIFF_INPUTS, aniso_scales, assert_matches_reference, hard_scene, intrinsics, layered_scene, random_scene, render_both,
-    render_with_grads,
+    DIFF_INPUTS, aniso_scales, assert_matches_reference, hard_scene, intrinsics, layered_scene, random_scene,
+    render_both, render_with_grads,
 )
 
 

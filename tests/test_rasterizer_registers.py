@@ -19,6 +19,12 @@ def backward(max_registers=0, fast_math=False):
 
 
 @nvrtc
+def test_forward_cap_reaches_the_compiled_forward():
+    forward = blend_kernels(3, 16, False, 256, True, "float32", False, packed=True, forward_max_registers=64)[0]
+    assert kernel_resources(forward)["registers"] <= 64
+
+
+@nvrtc
 def test_packed_records_take_barriers_out_of_the_batch_loop():
     # Per batch, each indexed load into shared memory costs a barrier after it and one before the
     # next batch's: fields gathers ids, means2d, conics, opacities and colours, packed ids and records.
@@ -49,10 +55,11 @@ def test_register_cap_reaches_the_compiled_backward(cap):
 
 
 def test_cap_is_validated():
-    assert RasterOptions(backward_max_registers=64).backward_max_registers == 64
-    for bad in (16, 256, -1):
-        with pytest.raises(ValueError, match="backward_max_registers"):
-            RasterOptions(backward_max_registers=bad)
+    for name in ("backward_max_registers", "forward_max_registers"):
+        assert getattr(RasterOptions(**{name: 64}), name) == 64
+        for bad in (16, 256, -1):
+            with pytest.raises(ValueError, match=name):
+                RasterOptions(**{name: bad})
 
 
 def test_cubin_reader_refuses_what_is_not_a_cubin():
