@@ -13,7 +13,7 @@ import warp as wp
 from securegs_warp.cuda_resources import kernel_barriers, kernel_resources
 from securegs_warp.rasterizer import RasterOptions, blend_kernels_for
 
-# (label, RasterOptions fields): the backward variants scripts/bench_rasterizer.py times on the GPU.
+# (label, RasterOptions fields): the variants scripts/bench_rasterizer.py times on the GPU.
 VARIANTS = [
     ("default", {}),
     ("backward_walk=warp", {"backward_walk": "warp"}),
@@ -22,6 +22,7 @@ VARIANTS = [
     ("+ fast_math", {"backward_walk": "warp", "fast_math": True}),
     ("+ fast_math, backward_max_registers=64",
      {"backward_walk": "warp", "fast_math": True, "backward_max_registers": 64}),
+    ("color_storage=float16", {"color_storage": "float16"}),
     ("gather=packed", {"gather": "packed"}),
     ("gather=packed, forward_max_registers=64", {"gather": "packed", "forward_max_registers": 64}),
     ("gather=packed, fast_math", {"gather": "packed", "fast_math": True}),
