@@ -21,10 +21,12 @@ Accuracy-for-time variants (compile-time, see ``blend_kernels``): colours read f
 gradients are written in float32), and Warp's fast math.
 
 Packed records (``blend_kernels(..., packed=True)``, written by ``pack_kernel`` after projection):
-each batch is gathered with one ``tile_load_indexed`` of a float32 row per Gaussian instead of one
-per field. In Warp 1.19 each indexed load into shared memory is a register gather, a store and a
-block barrier (and one more barrier before a reload), so the per-field gathers serialise four or
-five global-memory latencies per batch; one record row costs one.
+each batch is gathered with one ``tile_load_indexed`` of a per-Gaussian row instead of one per
+field. In Warp 1.19 each indexed load into shared memory is a register gather, a store and a block
+barrier (and, reloaded in a loop, one more barrier before the store), so the per-field gathers
+serialise four or five global-memory latencies and 10 or 12 barriers per batch; the record costs one
+latency, and its gather (``tile_assign`` into tiles made once) only the barriers it needs: 2 in
+the forward, 3 in the backward.
 """
 import functools
 from typing import Any
@@ -81,6 +83,14 @@ def warp_leader() -> bool:
 """)
 def warp_max(x: int) -> int:
     """Largest value over the 32 lanes of a CUDA warp; on the CPU a thread is its own warp."""
+    ...
+
+
+@wp.func_native("""
+    WP_TILE_SYNC();
+""")
+def block_barrier():
+    """Wait for every thread of the block (CUDA ``__syncthreads``; Warp's CPU blocks likewise)."""
     ...
 
 
@@ -182,7 +192,7 @@ def batch_size(channels: int, block: int, with_depth: bool, color_storage: str, 
 @functools.lru_cache(maxsize=None)
 def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
                   color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0,
-                  packed: bool = False, forward_max_registers: int = 0):
+                  packed: bool = False):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 
@@ -203,7 +213,6 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
     (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
     not packed) and read the per-field arrays only for what the record lacks.
-    ``forward_max_registers``: the same cap for the CUDA forward.
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
@@ -221,6 +230,17 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     REC_COLOR = packed and colors_in_record(color_storage)
     ColorVec = wp.types.vector(length=C, dtype=wp.float32)
     GradVec = wp.types.vector(length=NG, dtype=wp.float32)
+
+    @wp.func
+    def gather_records(sorted_ids: wp.array(dtype=wp.int32), records: wp.array2d(dtype=wp.vec4), b0: int,
+                       ids: Any, rec: Any):
+        """Batch ``b0 .. b0 + B - 1`` of the tile's list into the shared tiles ``ids`` [B] and ``rec``
+        [B, Q], with a block barrier after each (the gather reads other threads' ids; every pixel
+        reads every record). Unlike a reload with ``storage="shared"``, no barrier before the stores:
+        the caller makes sure no thread still reads what they overwrite. The records are written
+        after the ids' barrier, when every thread is past the previous batch; the ids may need one."""
+        wp.tile_assign(ids, wp.tile_load(sorted_ids, shape=(B,), offset=(b0,)), offset=(0,))
+        wp.tile_assign(rec, wp.tile_load_indexed(records, ids, shape=(B, Q), offset=(0, 0), axis=0), offset=(0, 0))
 
     def forward(
         ranges: wp.array2d(dtype=wp.int32),
@@ -260,6 +280,11 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         last = int(-1)
         done = not inside
         n_batches = (end - start + B - 1) // B
+        if wp.static(PACKED and COOP):
+            ids = wp.tile_empty(shape=(B,), dtype=wp.int32, storage="shared")
+            rec = wp.tile_empty(shape=(B, Q), dtype=wp.vec4, storage="shared")
+        elif wp.static(PACKED):
+            rec = records
         for b in range(n_batches):
             b0 = start + b * B
             if wp.static(COOP):
@@ -267,28 +292,31 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 n_done = wp.tile_sum(wp.tile(wp.where(done, 1, 0)))
                 if wp.tile_extract(n_done, 0) == wp.block_dim():
                     break
-                ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
-                if wp.static(PACKED):
-                    rec_t = wp.tile_load_indexed(records, ids, shape=(B, Q), offset=(0, 0), axis=0, storage="shared")
-                else:
-                    xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                    cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                    op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                    if wp.static(DEPTH == 1):
-                        dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                if wp.static(not REC_COLOR):
-                    col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
             elif done:
                 break
+            if wp.static(PACKED and COOP):
+                # The walk reads records only: the ids are free once the last gather passed its barrier.
+                gather_records(sorted_ids, records, b0, ids, rec)
+                if wp.static(not REC_COLOR):
+                    col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+            elif wp.static(COOP):
+                ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
+                xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+                if wp.static(DEPTH == 1):
+                    dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
             count = wp.min(B, end - b0)
             if not done:
                 for j in range(count):
-                    if wp.static(not COOP):
+                    if wp.static(COOP):
+                        row = j
+                    else:
                         gid = sorted_ids[b0 + j]
-                    if wp.static(PACKED and COOP):
-                        xy, cn, op = record_geometry(rec_t, j)
-                    elif wp.static(PACKED):
-                        xy, cn, op = record_geometry(records, gid)
+                        row = gid
+                    if wp.static(PACKED):
+                        xy, cn, op = record_geometry(rec, row)
                     elif wp.static(COOP):
                         xy = xy_t[j]
                         cn = cn_t[j]
@@ -309,25 +337,19 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         w = alpha * T
                         for c in range(C):
                             # float(): widen a float16 colour (the identity for float32).
-                            if wp.static(REC_COLOR and COOP):
-                                col = record_word(rec_t, j, _R_COLOR + c)
-                            elif wp.static(REC_COLOR):
-                                col = record_word(records, gid, _R_COLOR + c)
+                            if wp.static(REC_COLOR):
+                                acc[c] = acc[c] + record_word(rec, row, _R_COLOR + c) * w
                             elif wp.static(COOP):
-                                col = float(col_t[j, c])
+                                acc[c] = acc[c] + float(col_t[j, c]) * w
                             else:
-                                col = float(colors[gid, c])
-                            acc[c] = acc[c] + col * w
+                                acc[c] = acc[c] + float(colors[gid, c]) * w
                         if wp.static(DEPTH == 1):
-                            if wp.static(PACKED and COOP):
-                                dep = record_word(rec_t, j, _R_DEPTH)
-                            elif wp.static(PACKED):
-                                dep = record_word(records, gid, _R_DEPTH)
+                            if wp.static(PACKED):
+                                acc_depth += record_word(rec, row, _R_DEPTH) * w
                             elif wp.static(COOP):
-                                dep = dep_t[j]
+                                acc_depth += dep_t[j] * w
                             else:
-                                dep = depths[gid]
-                            acc_depth += dep * w
+                                acc_depth += depths[gid] * w
                         T = next_t
                         last = b0 + j
         if inside:
@@ -408,22 +430,29 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         buf = ColorVec()
         buf_depth = float(0.0)
         n_batches = (hi - start + B - 1) // B
+        if wp.static(PACKED and COOP):
+            ids = wp.tile_empty(shape=(B,), dtype=wp.int32, storage="shared")
+            rec = wp.tile_empty(shape=(B, Q), dtype=wp.vec4, storage="shared")
+        elif wp.static(PACKED):
+            rec = records
         for b in range(n_batches):
             b1 = hi - b * B
             b0 = wp.max(start, b1 - B)
             count = b1 - b0
-            if wp.static(COOP):
-                ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
-                if wp.static(PACKED):
-                    rec_t = wp.tile_load_indexed(records, ids, shape=(B, Q), offset=(0, 0), axis=0, storage="shared")
-                else:
-                    xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                    cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                    op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-                    if wp.static(DEPTH == 1):
-                        dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+            if wp.static(PACKED and COOP):
+                # The previous batch's walk reads ids (its Gaussians' gradient slots).
+                block_barrier()
+                gather_records(sorted_ids, records, b0, ids, rec)
                 if wp.static(not REC_COLOR):
                     col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+            elif wp.static(COOP):
+                ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
+                xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                op_t = wp.tile_load_indexed(opacities, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
+                col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+                if wp.static(DEPTH == 1):
+                    dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
             # Entries b0 .. b0 + n_walk - 1 of this batch: none past the warp's last (may be none).
             n_walk = wp.min(count, warp_hi - b0)
             for jj in range(n_walk):
@@ -432,13 +461,13 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 touched = False
                 if wp.static(COOP):
                     gid = ids[j]
+                    row = j
                 else:
                     gid = sorted_ids[b0 + j]
+                    row = gid
                 if b0 + j <= last:
-                    if wp.static(PACKED and COOP):
-                        xy, cn, op = record_geometry(rec_t, j)
-                    elif wp.static(PACKED):
-                        xy, cn, op = record_geometry(records, gid)
+                    if wp.static(PACKED):
+                        xy, cn, op = record_geometry(rec, row)
                     elif wp.static(COOP):
                         xy = xy_t[j]
                         cn = cn_t[j]
@@ -459,10 +488,8 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         w = alpha * T
                         d_alpha = float(0.0)
                         for c in range(C):
-                            if wp.static(REC_COLOR and COOP):
-                                col = record_word(rec_t, j, _R_COLOR + c)
-                            elif wp.static(REC_COLOR):
-                                col = record_word(records, gid, _R_COLOR + c)
+                            if wp.static(REC_COLOR):
+                                col = record_word(rec, row, _R_COLOR + c)
                             elif wp.static(COOP):
                                 col = float(col_t[j, c])
                             else:
@@ -471,10 +498,8 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             d_alpha += (col * T - buf[c] * ra) * v_img[c]
                             buf[c] = buf[c] + col * w
                         if wp.static(DEPTH == 1):
-                            if wp.static(PACKED and COOP):
-                                dep = record_word(rec_t, j, _R_DEPTH)
-                            elif wp.static(PACKED):
-                                dep = record_word(records, gid, _R_DEPTH)
+                            if wp.static(PACKED):
+                                dep = record_word(rec, row, _R_DEPTH)
                             elif wp.static(COOP):
                                 dep = dep_t[j]
                             else:
@@ -507,10 +532,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
            f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}"
            f"{'_packed' if packed else ''}")
+    backward_tag = tag + (f"_r{max_registers}" if max_registers else "")
+    forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
+    backward.__name__ = backward.__qualname__ = f"blend_backward_{backward_tag}"
     # fast_math is a module option: each variant gets its own module.
     options = dict(enable_backward=False, module="unique", module_options={"fast_math": fast_math})
-    kernels = []
-    for fn, name, cap in ((forward, "forward", forward_max_registers), (backward, "backward", max_registers)):
-        fn.__name__ = fn.__qualname__ = f"blend_{name}_{tag}" + (f"_r{cap}" if cap else "")
-        kernels.append(wp.kernel(fn, **options, **({"cuda_max_registers": cap} if cap else {})))
-    return tuple(kernels)
+    registers = {"cuda_max_registers": max_registers} if max_registers else {}
+    return wp.kernel(forward, **options), wp.kernel(backward, **options, **registers)

@@ -24,7 +24,6 @@ VARIANTS = [
      {"backward_walk": "warp", "fast_math": True, "backward_max_registers": 64}),
     ("color_storage=float16", {"color_storage": "float16"}),
     ("gather=packed", {"gather": "packed"}),
-    ("gather=packed, forward_max_registers=64", {"gather": "packed", "forward_max_registers": 64}),
     ("gather=packed, fast_math", {"gather": "packed", "fast_math": True}),
     ("gather=packed, color_storage=float16", {"gather": "packed", "color_storage": "float16"}),
 ]

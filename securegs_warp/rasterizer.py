@@ -85,10 +85,6 @@ class RasterOptions:
     # choice, 92 for 3 channels on sm_90). At 256 threads a block, ≤ 80 fits 3 blocks on an H100
     # multiprocessor instead of 2, ≤ 64 fits 4, against a few bytes spilled to local memory.
     backward_max_registers: int = 0
-    # The same cap for the forward blending kernel (the compiler's choice: 64 for 3 channels, 70 with
-    # gather="packed", whose batch gather holds 12 words a thread: 3 blocks of 256 a multiprocessor
-    # instead of 4; capped at 64 it spills nothing, scripts/kernel_registers.py).
-    forward_max_registers: int = 0
     # How the blending kernels gather each batch of Gaussians: one indexed load per field (means2d,
     # conics, opacities, colours, depths: "fields"), or one of a per-Gaussian record that a small
     # kernel packs after projection ("packed": x, y, conic, opacity, depth and float32 colours in
@@ -109,10 +105,9 @@ class RasterOptions:
             raise ValueError(f"color_storage must be one of {tuple(COLOR_STORAGES)}, got {self.color_storage!r}")
         if self.tile_overlap not in TILE_OVERLAPS:
             raise ValueError(f"tile_overlap must be one of {TILE_OVERLAPS}, got {self.tile_overlap!r}")
-        for name in ("forward_max_registers", "backward_max_registers"):
-            cap = getattr(self, name)
-            if cap and not 32 <= cap <= 255:
-                raise ValueError(f"{name} must be 0 (the compiler's choice) or in [32, 255], got {cap}")
+        if self.backward_max_registers and not 32 <= self.backward_max_registers <= 255:
+            raise ValueError(f"backward_max_registers must be 0 (the compiler's choice) or in [32, 255], "
+                             f"got {self.backward_max_registers}")
         if self.gather not in GATHERS:
             raise ValueError(f"gather must be one of {GATHERS}, got {self.gather!r}")
         if self.backward_walk not in BACKWARD_WALKS:
@@ -221,7 +216,7 @@ def rasterize(
             alpha_min, alpha_max, transmittance_min, tile_size, antialiased, radius_rule,
             render_depth=None | "accumulated" | "expected", fast_math, color_storage="float32" |
             "float16", tile_overlap="ellipse" | "rectangle", capture, forward_block, backward_block,
-            backward_walk, backward_max_registers, forward_max_registers, gather="fields" | "packed"),
+            backward_walk, backward_max_registers, gather="fields" | "packed"),
             replacing those of ``options``.
 
     Returns:
@@ -505,8 +500,7 @@ def blend_kernels_for(opts: RasterOptions, channels: int, with_depth: bool, coop
     batch = batch_size(channels, opts.block(opts.forward_block), with_depth, opts.color_storage, packed) \
         if cooperative else CPU_BATCH
     return blend_kernels(channels, opts.tile_size, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
-                         opts.backward_walk == "warp", opts.backward_max_registers, packed,
-                         opts.forward_max_registers)
+                         opts.backward_walk == "warp", opts.backward_max_registers, packed)
 
 
 class _Scope:
