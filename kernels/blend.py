@@ -237,8 +237,8 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         """Batch ``b0 .. b0 + B - 1`` of the tile's list into the shared tiles ``ids`` [B] and ``rec``
         [B, Q], with a block barrier after each (the gather reads other threads' ids; every pixel
         reads every record). Unlike a reload with ``storage="shared"``, no barrier before the stores:
-        the caller makes sure no thread still reads what they overwrite. The records are written
-        after the ids' barrier, when every thread is past the previous batch; the ids may need one."""
+        the records are written after the ids' barrier, when every thread is past the previous batch,
+        but a caller whose walk reads ``ids`` needs a barrier before the call."""
         wp.tile_assign(ids, wp.tile_load(sorted_ids, shape=(B,), offset=(b0,)), offset=(0,))
         wp.tile_assign(rec, wp.tile_load_indexed(records, ids, shape=(B, Q), offset=(0, 0), axis=0), offset=(0, 0))
 
@@ -295,7 +295,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
             elif done:
                 break
             if wp.static(PACKED and COOP):
-                # The walk reads records only: the ids are free once the last gather passed its barrier.
+                # No barrier first: the walk does not read ids, and every gather that did passed its own.
                 gather_records(sorted_ids, records, b0, ids, rec)
                 if wp.static(not REC_COLOR):
                     col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
