@@ -19,8 +19,17 @@ the transmittance to ≤ t_min; colour = Σ cᵢαᵢTᵢ + T·background.
 Accuracy-for-time variants (compile-time, see ``blend_kernels``): colours read from a float16 table
 (half the bytes per Gaussian in global and shared memory; arithmetic stays float32 and the colour
 gradients are written in float32), and Warp's fast math.
+
+Packed records (``blend_kernels(..., packed=True)``, written by ``pack_kernel`` after projection):
+each batch is gathered with one ``tile_load_indexed`` of a per-Gaussian row instead of one per
+field. In Warp 1.19 each indexed load into shared memory is a register gather, a store and a block
+barrier (and, reloaded in a loop, one more barrier before the store), so the per-field gathers
+serialise four or five global-memory latencies and 10 or 12 barriers per batch; the record costs one
+latency, and its gather (``tile_assign`` into tiles made once) only the barriers it needs: 2 in
+the forward, 3 in the backward.
 """
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -77,22 +86,103 @@ def warp_max(x: int) -> int:
     ...
 
 
+@wp.func_native("""
+    WP_TILE_SYNC();
+""")
+def block_barrier():
+    """Wait for every thread of the block (CUDA ``__syncthreads``; Warp's CPU blocks likewise)."""
+    ...
+
+
 # Gradient vector layout per Gaussian: [d mean2d (2), d conic (3), d opacity (1), d colour (C), d depth].
 _XY, _CONIC, _OPACITY, _COLOR = 0, 2, 5, 6
 
 # Upper bound on the shared memory of one batch (bytes), to pick the batch size for wide colours.
 _BATCH_SHARED_BYTES = 24 * 1024
 
+# Packed record of one Gaussian (float32 words): x, y, conic a, b, c, opacity, depth, then its
+# colours when they are float32, padded to a multiple of 4 words so that rows are 16-byte aligned.
+# float16 colours stay in their own [N, C] table (a second indexed load per batch): widened into
+# the float32 record they would take twice the bytes, which float16 storage exists to save.
+_R_XY, _R_CONIC, _R_OPACITY, _R_DEPTH, _R_COLOR = 0, 2, 5, 6, 7
+
+
+def colors_in_record(color_storage: str) -> bool:
+    """Whether the packed record holds the colours (float32 storage) or they stay in their table."""
+    return color_storage == "float32"
+
+
+def record_width(channels: int, color_storage: str) -> int:
+    """float32 words per packed record: ``_R_COLOR`` (+ C colours when in the record), rounded up to 4."""
+    words = _R_COLOR + (channels if colors_in_record(color_storage) else 0)
+    return (words + 3) // 4 * 4
+
+
+@wp.func
+def record_word(src: Any, row: int, k: int):
+    """Word ``k`` of row ``row`` of packed records: the [N, P / 4] vec4 table or a batch of it in
+    shared memory. vec4 columns make the batch gather 16 bytes a load instead of 4."""
+    return src[row, k // 4][k % 4]
+
+
+@wp.func
+def record_geometry(src: Any, row: int):
+    """(mean2d, conic, opacity) of row ``row`` of packed records (see ``record_word``)."""
+    return (wp.vec2(record_word(src, row, _R_XY), record_word(src, row, _R_XY + 1)),
+            wp.vec3(record_word(src, row, _R_CONIC), record_word(src, row, _R_CONIC + 1),
+                    record_word(src, row, _R_CONIC + 2)),
+            record_word(src, row, _R_OPACITY))
+
+
+@functools.lru_cache(maxsize=None)
+def pack_kernel(channels: int, color_storage: str):
+    """Kernel writing each Gaussian's packed record into ``records`` [N, record_width] (float32
+    words; the blending kernels read the same memory as [N, record_width / 4] vec4) from the
+    projection's outputs (and the colours when ``colors_in_record``), launched with dim=N."""
+    C = channels
+    WITH_COLORS = colors_in_record(color_storage)
+    ColorT = COLOR_STORAGES[color_storage]
+
+    def pack(
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        depths: wp.array(dtype=float),
+        colors: wp.array2d(dtype=ColorT),
+        records: wp.array2d(dtype=float),
+    ):
+        i = wp.tid()
+        xy = means2d[i]
+        cn = conics[i]
+        records[i, _R_XY] = xy[0]
+        records[i, _R_XY + 1] = xy[1]
+        records[i, _R_CONIC] = cn[0]
+        records[i, _R_CONIC + 1] = cn[1]
+        records[i, _R_CONIC + 2] = cn[2]
+        records[i, _R_OPACITY] = opacities[i]
+        records[i, _R_DEPTH] = depths[i]
+        if wp.static(WITH_COLORS):
+            for c in range(C):
+                records[i, _R_COLOR + c] = float(colors[i, c])
+
+    pack.__name__ = pack.__qualname__ = f"pack_records_c{C}_{color_storage}"
+    return wp.kernel(pack, enable_backward=False, module="unique")
+
 
 # On the CPU (one thread per block, direct reads) the batch only paces the walk over the list.
 CPU_BATCH = 32
 
 
-def batch_size(channels: int, block: int, with_depth: bool, color_storage: str) -> int:
+def batch_size(channels: int, block: int, with_depth: bool, color_storage: str, packed: bool = False) -> int:
     """Gaussians gathered per batch: one per thread of the block (at least 32), fewer when the
-    feature channels are wide enough to overflow the shared-memory budget."""
+    feature channels are wide enough to overflow the shared-memory budget (``packed``: the batch
+    holds records of ``record_width`` words)."""
     color_bytes = wp.types.type_size_in_bytes(COLOR_STORAGES[color_storage])
-    per_gaussian = 4 * (1 + 2 + 3 + 1 + int(with_depth)) + color_bytes * channels
+    if packed:
+        separate = 0 if colors_in_record(color_storage) else color_bytes * channels
+        per_gaussian = 4 * (1 + record_width(channels, color_storage)) + separate
+    else:
+        per_gaussian = 4 * (1 + 2 + 3 + 1 + int(with_depth)) + color_bytes * channels
     b = max(block, 32)
     while b > 32 and b * per_gaussian > _BATCH_SHARED_BYTES:
         b //= 2
@@ -101,7 +191,8 @@ def batch_size(channels: int, block: int, with_depth: bool, color_storage: str) 
 
 @functools.lru_cache(maxsize=None)
 def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
-                  color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0):
+                  color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0,
+                  packed: bool = False):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 
@@ -118,6 +209,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     ``max_registers``: registers per thread the CUDA backward may use (``__maxnreg__``; 0: the
     compiler's choice). Fewer registers let more blocks share a multiprocessor, at the risk of
     spilling to local memory; the CPU ignores it.
+    ``packed``: read each Gaussian from its row of ``records`` [N, record_width / 4] vec4 (``pack_kernel``),
+    gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
+    (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
+    not packed) and read the per-field arrays only for what the record lacks.
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
@@ -129,8 +224,23 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     DEPTH = 1 if with_depth else 0
     NG = _COLOR + C + DEPTH
     WARP_WALK = warp_walk
+    PACKED = packed
+    Q = record_width(C, color_storage) // 4  # vec4 columns of a record
+    # Colours read from the record (else from their own table, tile or array).
+    REC_COLOR = packed and colors_in_record(color_storage)
     ColorVec = wp.types.vector(length=C, dtype=wp.float32)
     GradVec = wp.types.vector(length=NG, dtype=wp.float32)
+
+    @wp.func
+    def gather_records(sorted_ids: wp.array(dtype=wp.int32), records: wp.array2d(dtype=wp.vec4), b0: int,
+                       ids: Any, rec: Any):
+        """Batch ``b0 .. b0 + B - 1`` of the tile's list into the shared tiles ``ids`` [B] and ``rec``
+        [B, Q], with a block barrier after each (the gather reads other threads' ids; every pixel
+        reads every record). Unlike a reload with ``storage="shared"``, no barrier before the stores:
+        the records are written after the ids' barrier, when every thread is past the previous batch,
+        but a caller whose walk reads ``ids`` needs a barrier before the call."""
+        wp.tile_assign(ids, wp.tile_load(sorted_ids, shape=(B,), offset=(b0,)), offset=(0,))
+        wp.tile_assign(rec, wp.tile_load_indexed(records, ids, shape=(B, Q), offset=(0, 0), axis=0), offset=(0, 0))
 
     def forward(
         ranges: wp.array2d(dtype=wp.int32),
@@ -140,6 +250,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         opacities: wp.array(dtype=float),
         colors: wp.array2d(dtype=ColorT),
         depths: wp.array(dtype=float),
+        records: wp.array2d(dtype=wp.vec4),
         background: wp.array(dtype=float),
         width: int,
         height: int,
@@ -169,6 +280,11 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         last = int(-1)
         done = not inside
         n_batches = (end - start + B - 1) // B
+        if wp.static(PACKED and COOP):
+            ids = wp.tile_empty(shape=(B,), dtype=wp.int32, storage="shared")
+            rec = wp.tile_empty(shape=(B, Q), dtype=wp.vec4, storage="shared")
+        elif wp.static(PACKED):
+            rec = records
         for b in range(n_batches):
             b0 = start + b * B
             if wp.static(COOP):
@@ -176,6 +292,14 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 n_done = wp.tile_sum(wp.tile(wp.where(done, 1, 0)))
                 if wp.tile_extract(n_done, 0) == wp.block_dim():
                     break
+            elif done:
+                break
+            if wp.static(PACKED and COOP):
+                # No barrier first: the walk does not read ids, and every gather that did passed its own.
+                gather_records(sorted_ids, records, b0, ids, rec)
+                if wp.static(not REC_COLOR):
+                    col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+            elif wp.static(COOP):
                 ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
                 xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
                 cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
@@ -183,17 +307,21 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
                 if wp.static(DEPTH == 1):
                     dep_t = wp.tile_load_indexed(depths, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
-            elif done:
-                break
             count = wp.min(B, end - b0)
             if not done:
                 for j in range(count):
                     if wp.static(COOP):
+                        row = j
+                    else:
+                        gid = sorted_ids[b0 + j]
+                        row = gid
+                    if wp.static(PACKED):
+                        xy, cn, op = record_geometry(rec, row)
+                    elif wp.static(COOP):
                         xy = xy_t[j]
                         cn = cn_t[j]
                         op = op_t[j]
                     else:
-                        gid = sorted_ids[b0 + j]
                         xy = means2d[gid]
                         cn = conics[gid]
                         op = opacities[gid]
@@ -209,12 +337,16 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         w = alpha * T
                         for c in range(C):
                             # float(): widen a float16 colour (the identity for float32).
-                            if wp.static(COOP):
+                            if wp.static(REC_COLOR):
+                                acc[c] = acc[c] + record_word(rec, row, _R_COLOR + c) * w
+                            elif wp.static(COOP):
                                 acc[c] = acc[c] + float(col_t[j, c]) * w
                             else:
                                 acc[c] = acc[c] + float(colors[gid, c]) * w
                         if wp.static(DEPTH == 1):
-                            if wp.static(COOP):
+                            if wp.static(PACKED):
+                                acc_depth += record_word(rec, row, _R_DEPTH) * w
+                            elif wp.static(COOP):
                                 acc_depth += dep_t[j] * w
                             else:
                                 acc_depth += depths[gid] * w
@@ -237,6 +369,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         opacities: wp.array(dtype=float),
         colors: wp.array2d(dtype=ColorT),
         depths: wp.array(dtype=float),
+        records: wp.array2d(dtype=wp.vec4),
         background: wp.array(dtype=float),
         width: int,
         height: int,
@@ -297,11 +430,22 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         buf = ColorVec()
         buf_depth = float(0.0)
         n_batches = (hi - start + B - 1) // B
+        if wp.static(PACKED and COOP):
+            ids = wp.tile_empty(shape=(B,), dtype=wp.int32, storage="shared")
+            rec = wp.tile_empty(shape=(B, Q), dtype=wp.vec4, storage="shared")
+        elif wp.static(PACKED):
+            rec = records
         for b in range(n_batches):
             b1 = hi - b * B
             b0 = wp.max(start, b1 - B)
             count = b1 - b0
-            if wp.static(COOP):
+            if wp.static(PACKED and COOP):
+                # The previous batch's walk reads ids (its Gaussians' gradient slots).
+                block_barrier()
+                gather_records(sorted_ids, records, b0, ids, rec)
+                if wp.static(not REC_COLOR):
+                    col_t = wp.tile_load_indexed(colors, ids, shape=(B, C), offset=(0, 0), axis=0, storage="shared")
+            elif wp.static(COOP):
                 ids = wp.tile_load(sorted_ids, shape=(B,), offset=(b0,), storage="shared")
                 xy_t = wp.tile_load_indexed(means2d, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
                 cn_t = wp.tile_load_indexed(conics, ids, shape=(B,), offset=(0,), axis=0, storage="shared")
@@ -317,10 +461,14 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 touched = False
                 if wp.static(COOP):
                     gid = ids[j]
+                    row = j
                 else:
                     gid = sorted_ids[b0 + j]
+                    row = gid
                 if b0 + j <= last:
-                    if wp.static(COOP):
+                    if wp.static(PACKED):
+                        xy, cn, op = record_geometry(rec, row)
+                    elif wp.static(COOP):
                         xy = xy_t[j]
                         cn = cn_t[j]
                         op = op_t[j]
@@ -340,7 +488,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         w = alpha * T
                         d_alpha = float(0.0)
                         for c in range(C):
-                            if wp.static(COOP):
+                            if wp.static(REC_COLOR):
+                                col = record_word(rec, row, _R_COLOR + c)
+                            elif wp.static(COOP):
                                 col = float(col_t[j, c])
                             else:
                                 col = float(colors[gid, c])
@@ -348,7 +498,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             d_alpha += (col * T - buf[c] * ra) * v_img[c]
                             buf[c] = buf[c] + col * w
                         if wp.static(DEPTH == 1):
-                            if wp.static(COOP):
+                            if wp.static(PACKED):
+                                dep = record_word(rec, row, _R_DEPTH)
+                            elif wp.static(COOP):
                                 dep = dep_t[j]
                             else:
                                 dep = depths[gid]
@@ -378,7 +530,8 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                             wp.atomic_add(v_depths, gid, g[_COLOR + C])
 
     tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
-           f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}")
+           f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}"
+           f"{'_packed' if packed else ''}")
     backward_tag = tag + (f"_r{max_registers}" if max_registers else "")
     forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
     backward.__name__ = backward.__qualname__ = f"blend_backward_{backward_tag}"

@@ -1,6 +1,7 @@
 """Registers and local-memory frame per thread of the blending kernels compiled for a CUDA
 architecture (default sm_90, the H100), for each backward variant of RasterOptions: read from the
-cubins Warp's NVRTC produces, so it runs without a GPU.
+cubins Warp's NVRTC produces, so it runs without a GPU. With the block barriers of each kernel's
+PTX: in all, and per batch of Gaussians (those of its walk over the batches).
 
     python scripts/kernel_registers.py                 # 3 channels, tiles of 16, blocks of 256
     python scripts/kernel_registers.py --channels 16 --arch 80
@@ -9,10 +10,10 @@ import argparse
 
 import warp as wp
 
-from securegs_warp.cuda_resources import kernel_resources
+from securegs_warp.cuda_resources import kernel_barriers, kernel_resources
 from securegs_warp.rasterizer import RasterOptions, blend_kernels_for
 
-# (label, RasterOptions fields): the backward variants scripts/bench_rasterizer.py times on the GPU.
+# (label, RasterOptions fields): the variants scripts/bench_rasterizer.py times on the GPU.
 VARIANTS = [
     ("default", {}),
     ("backward_walk=warp", {"backward_walk": "warp"}),
@@ -21,6 +22,10 @@ VARIANTS = [
     ("+ fast_math", {"backward_walk": "warp", "fast_math": True}),
     ("+ fast_math, backward_max_registers=64",
      {"backward_walk": "warp", "fast_math": True, "backward_max_registers": 64}),
+    ("color_storage=float16", {"color_storage": "float16"}),
+    ("gather=packed", {"gather": "packed"}),
+    ("gather=packed, fast_math", {"gather": "packed", "fast_math": True}),
+    ("gather=packed, color_storage=float16", {"gather": "packed", "color_storage": "float16"}),
 ]
 
 
@@ -32,12 +37,15 @@ def main():
     wp.config.quiet = True
     wp.init()
     print(f"sm_{args.arch}, {args.channels} channels, tiles of 16, blocks of 256, no depth\n")
-    print("| options | forward registers | backward registers | backward frame bytes |")
-    print("|---|---|---|---|")
+    print("| options | forward registers | forward frame bytes | backward registers | backward frame bytes "
+          "| forward barriers (per batch) | backward barriers (per batch) |")
+    print("|---|---|---|---|---|---|---|")
     for label, fields in VARIANTS:
         forward, backward = blend_kernels_for(RasterOptions(**fields), args.channels, False, True)
         f, b = kernel_resources(forward, args.arch), kernel_resources(backward, args.arch)
-        print(f"| {label} | {f['registers']} | {b['registers']} | {b['frame_bytes']} |")
+        fb, bb = kernel_barriers(forward, args.arch), kernel_barriers(backward, args.arch)
+        print(f"| {label} | {f['registers']} | {f['frame_bytes']} | {b['registers']} | {b['frame_bytes']} "
+              f"| {fb['barriers']} ({fb['loop_barriers']}) | {bb['barriers']} ({bb['loop_barriers']}) |", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,9 @@
 """Registers and local-memory frame of a Warp kernel compiled for a CUDA architecture, read from the
 cubin that NVRTC produces: no GPU is needed (Warp compiles ahead of time with ``compile_aot_module``).
 
+``kernel_barriers`` counts the block barriers in the kernel's PTX, in all and in its innermost loop
+that holds any (the blending kernels' walk over batches of Gaussians).
+
 Occupancy follows from the registers: an H100 multiprocessor holds 65,536 registers, allocated per
 warp in multiples of 256 (8 per thread), so blocks of 256 threads fit 2 per multiprocessor at 81–128
 registers a thread, 3 at 73–80 and 4 at ≤ 64. A frame of more than 0 bytes means spilled registers
@@ -8,6 +11,7 @@ or a local array.
 """
 from __future__ import annotations
 
+import re
 import struct
 import tempfile
 
@@ -75,3 +79,38 @@ def kernel_resources(kernel, arch: int = 90) -> dict[str, int]:
         paths = wp.compile_aot_module(kernel.module, device=None, arch=arch, module_dir=folder, use_ptx=False)
         with open(paths[0], "rb") as f:
             return cubin_resources(f.read())
+
+
+def ptx_barriers(ptx: str) -> dict[str, int]:
+    """{"barriers": block barriers (``bar.sync``/``barrier.sync``) in ``ptx``, "loop_barriers": those
+    of the innermost loop that holds any} of a PTX listing of one kernel. A loop is the span from a
+    label to the last branch back to it; a loop holds a barrier when no loop inside it does.
+    Raises ValueError when several innermost loops hold barriers (the count would be ambiguous)."""
+    lines = ptx.splitlines()
+    labels = {m.group(1): i for i, line in enumerate(lines) if (m := re.match(r"^(\$\w+):", line))}
+    loops: dict[str, tuple[int, int]] = {}
+    for i, line in enumerate(lines):
+        m = re.search(r"\bbra(?:\.uni)?\s+(\$\w+);", line)
+        if m and m.group(1) in labels and labels[m.group(1)] < i:
+            loops[m.group(1)] = (labels[m.group(1)], i)
+    barriers = [i for i, line in enumerate(lines) if re.search(r"\b(bar|barrier)\.sync\b", line)]
+    innermost: dict[tuple[int, int], int] = {}
+    for b in barriers:
+        around = [span for span in loops.values() if span[0] < b < span[1]]
+        if around:
+            span = min(around, key=lambda s: s[1] - s[0])
+            innermost[span] = innermost.get(span, 0) + 1
+    leaves = [span for span in innermost
+              if not any(other != span and span[0] <= other[0] and other[1] <= span[1] for other in innermost)]
+    if len(leaves) > 1:
+        raise ValueError(f"{len(leaves)} separate loops hold barriers")
+    return {"barriers": len(barriers), "loop_barriers": innermost[leaves[0]] if leaves else 0}
+
+
+def kernel_barriers(kernel, arch: int = 90) -> dict[str, int]:
+    """``ptx_barriers`` of ``kernel`` (alone in its module) compiled to PTX for sm_``arch`` (NVRTC,
+    no GPU)."""
+    with tempfile.TemporaryDirectory() as folder:
+        paths = wp.compile_aot_module(kernel.module, device=None, arch=arch, module_dir=folder, use_ptx=True)
+        with open(paths[0], encoding="utf-8", errors="replace") as f:
+            return ptx_barriers(f.read())

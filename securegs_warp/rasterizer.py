@@ -15,7 +15,7 @@ import torch
 import warp as wp
 
 from .kernels import binning
-from .kernels.blend import COLOR_STORAGES, CPU_BATCH, batch_size, blend_kernels
+from .kernels.blend import COLOR_STORAGES, CPU_BATCH, batch_size, blend_kernels, pack_kernel, record_width
 from .kernels.projection import RADIUS_RULES, projection_kernel
 
 DEPTH_MODES = (None, "accumulated", "expected")
@@ -23,6 +23,7 @@ DEPTH_MODES = (None, "accumulated", "expected")
 # its ellipse at the alpha threshold reaches (same image, fewer intersections to sort and blend).
 TILE_OVERLAPS = ("ellipse", "rectangle")
 BACKWARD_WALKS = ("block", "warp")
+GATHERS = ("fields", "packed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +85,16 @@ class RasterOptions:
     # choice, 92 for 3 channels on sm_90). At 256 threads a block, ≤ 80 fits 3 blocks on an H100
     # multiprocessor instead of 2, ≤ 64 fits 4, against a few bytes spilled to local memory.
     backward_max_registers: int = 0
+    # How the blending kernels gather each batch of Gaussians: one indexed load per field (means2d,
+    # conics, opacities, colours, depths: "fields"), or one of a per-Gaussian record that a small
+    # kernel packs after projection ("packed": x, y, conic, opacity, depth and float32 colours in
+    # one 16-byte-aligned float32 row; float16 colours keep their own table). On CUDA each indexed
+    # load into shared memory ends in a block barrier, so "packed" pays one global-memory latency
+    # per batch where "fields" pays four or five (scripts/kernel_registers.py counts the barriers),
+    # for N × 12 float32 words more memory (RGB; 4·⌈(7+C)/4⌉ for C float32 colours, 8 with float16
+    # colours) and one more launch. Same images and gradients (the same floats in the same order);
+    # scripts/bench_rasterizer.py --variant packed:gather=packed compares them.
+    gather: str = "fields"
 
     def __post_init__(self):
         if self.tile_size not in (8, 16, 32):
@@ -97,6 +108,8 @@ class RasterOptions:
         if self.backward_max_registers and not 32 <= self.backward_max_registers <= 255:
             raise ValueError(f"backward_max_registers must be 0 (the compiler's choice) or in [32, 255], "
                              f"got {self.backward_max_registers}")
+        if self.gather not in GATHERS:
+            raise ValueError(f"gather must be one of {GATHERS}, got {self.gather!r}")
         if self.backward_walk not in BACKWARD_WALKS:
             raise ValueError(f"backward_walk must be one of {BACKWARD_WALKS}, got {self.backward_walk!r}")
         if self.render_depth not in DEPTH_MODES:
@@ -202,7 +215,8 @@ def rasterize(
         **overrides: fields of ``RasterOptions`` (near_plane, far_plane, eps2d, radius_clip,
             alpha_min, alpha_max, transmittance_min, tile_size, antialiased, radius_rule,
             render_depth=None | "accumulated" | "expected", fast_math, color_storage="float32" |
-            "float16", tile_overlap="ellipse" | "rectangle", capture, forward_block, backward_block),
+            "float16", tile_overlap="ellipse" | "rectangle", capture, forward_block, backward_block,
+            backward_walk, backward_max_registers, gather="fields" | "packed"),
             replacing those of ``options``.
 
     Returns:
@@ -376,6 +390,13 @@ class RenderPlan:
                 # Allocated by torch, like every buffer here: in order on torch's stream.
                 "ranges": _wp(torch.empty(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
             }
+            w_out["records"] = None
+            if opts.gather == "packed":
+                # Packed per-Gaussian records: written word by word by the packing kernel ([N, P]),
+                # gathered in 16-byte columns by the blending kernels ([N, P / 4] vec4).
+                words = torch.empty(n, record_width(c, opts.color_storage), **f32)
+                w_out["record_words"] = _wp(words, wp.float32)
+                w_out["records"] = _wp(words.view(n, words.shape[1] // 4, 4), wp.vec4)
         self.w = {**w_in, **w_out}
         if g:
             self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
@@ -394,6 +415,10 @@ class RenderPlan:
         self._fwd_block = opts.block(opts.forward_block)
         self._bwd_block = opts.block(opts.backward_block)
         self._blend = blend_kernels_for(opts, c, with_depth, cooperative)
+        self._pack = None if opts.gather != "packed" else dict(
+            kernel=pack_kernel(c, opts.color_storage), dim=n,
+            inputs=[w["means2d"], w["conics"], w["opac_out"], w["depths"], w["color_table"]],
+            outputs=[w["record_words"]])
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
@@ -443,10 +468,12 @@ class RenderPlan:
     def _blend_args(self):
         w, opts = self.w, self.opts
         return [w["ranges"], self.values, w["means2d"], w["conics"], w["opac_out"], w["color_table"], w["depths"],
-                w["background"], self.width, self.height, self.tiles_x, opts.alpha_min, opts.alpha_max]
+                w["records"], w["background"], self.width, self.height, self.tiles_x, opts.alpha_min, opts.alpha_max]
 
     def blend(self) -> None:
         w, ts = self.w, self.opts.tile_size
+        if self._pack is not None and self.n:
+            wp.launch(**self._pack)
         wp.launch(self._blend[0], dim=(self.n_tiles, ts * ts), block_dim=self._fwd_block,
                   inputs=self._blend_args() + [self.opts.transmittance_min],
                   outputs=[w["image"], w["alpha"], w["depth"], w["transmittance"], w["last"]])
@@ -469,10 +496,11 @@ class RenderPlan:
 def blend_kernels_for(opts: RasterOptions, channels: int, with_depth: bool, cooperative: bool):
     """(forward, backward) blending kernels a render with ``opts`` launches for ``channels`` colour
     channels (``cooperative``: CUDA's shared-memory batches; the CPU reads directly)."""
-    batch = batch_size(channels, opts.block(opts.forward_block), with_depth, opts.color_storage) if cooperative \
-        else CPU_BATCH
+    packed = opts.gather == "packed"
+    batch = batch_size(channels, opts.block(opts.forward_block), with_depth, opts.color_storage, packed) \
+        if cooperative else CPU_BATCH
     return blend_kernels(channels, opts.tile_size, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
-                         opts.backward_walk == "warp", opts.backward_max_registers)
+                         opts.backward_walk == "warp", opts.backward_max_registers, packed)
 
 
 class _Scope:

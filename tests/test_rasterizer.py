@@ -8,27 +8,34 @@ import torch
 
 from securegs_warp import RasterOptions, UnknownOptionError, rasterize, reference
 from securegs_warp.raster_cases import (
-    aniso_scales, assert_matches_reference, hard_scene, intrinsics, layered_scene, random_scene, render_both,
+    DIFF_INPUTS, aniso_scales, assert_matches_reference, hard_scene, intrinsics, layered_scene, random_scene,
+    render_both, render_with_grads,
 )
 
 
 # ---------------------------------------------------------------------------------------------
 # Random scenes and option variants
 
+# Both ways the blending kernels read a batch of Gaussians (RasterOptions.gather).
+GATHERS = pytest.mark.parametrize("gather", ["fields", "packed"])
 
+
+@GATHERS
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_random_scenes_match_reference(seed):
-    assert_matches_reference(random_scene(seed, n=80))
+def test_random_scenes_match_reference(seed, gather):
+    assert_matches_reference(random_scene(seed, n=80, gather=gather))
 
 
+@GATHERS
 @pytest.mark.parametrize("channels", [1, 16])
-def test_channel_counts(channels):
-    assert_matches_reference(random_scene(3, n=50, channels=channels))
+def test_channel_counts(channels, gather):
+    assert_matches_reference(random_scene(3, n=50, channels=channels, gather=gather))
 
 
+@GATHERS
 @pytest.mark.parametrize("tile_size", [8, 32])
-def test_tile_sizes(tile_size):
-    assert_matches_reference(random_scene(4, n=50, tile_size=tile_size))
+def test_tile_sizes(tile_size, gather):
+    assert_matches_reference(random_scene(4, n=50, tile_size=tile_size, gather=gather))
 
 
 @pytest.mark.parametrize("radius_rule", ["3sigma", "tight"])
@@ -169,10 +176,13 @@ def test_opacity_exactly_at_alpha_min(radius_rule):
                                         radius_rule=radius_rule))
 
 
-def test_hundreds_of_layers_on_one_pixel():
+@GATHERS
+def test_hundreds_of_layers_on_one_pixel(gather):
     # 600 layers along the optical axis: a translucent stack crossing several 256-Gaussian batches,
     # then opaque layers that end it before the transmittance floor.
-    ours, ref = assert_matches_reference(layered_scene(500, 100, width=16, height=16, jitter=0.01))
+    scene = layered_scene(500, 100, width=16, height=16, jitter=0.01)
+    scene.kwargs["gather"] = gather
+    ours, ref = assert_matches_reference(scene)
     assert float(ref["alpha"].max()) > 0.999  # the stack really does saturate
 
 
@@ -205,8 +215,9 @@ def test_odd_image_sizes(size):
     assert_matches_reference(s)
 
 
-def test_no_gaussians():
-    s = random_scene(13, n=0)
+@GATHERS
+def test_no_gaussians(gather):
+    s = random_scene(13, n=0, gather=gather)
     ours, _ = assert_matches_reference(s)
     assert torch.allclose(ours["image"], s.background.double().expand(s.height, s.width, 3))
     assert (ours["alpha"] == 0).all()
@@ -247,6 +258,20 @@ def test_gradients_flow_from_any_subset_of_outputs():
     _, alpha, _ = rasterize(means, s.quats, s.scales, s.opacities, s.colors, s.viewmat, s.K, s.width, s.height)
     alpha.sum().backward()  # image not used: its cotangent is absent
     assert torch.isfinite(means.grad).all() and means.grad.abs().sum() > 0
+
+
+def test_packed_records_give_the_same_render_bit_for_bit():
+    """gather="packed" reads the same float32 values as "fields" and adds them in the same order:
+    bit-identical images and gradients, with depth, several channels and float16 colours (which
+    stay outside the record)."""
+    for scene in (random_scene(22, n=70, channels=5), layered_scene()):
+        for fields in ({}, {"color_storage": "float16", "render_depth": "accumulated"}):
+            apart = render_with_grads(scene, **fields)
+            packed = render_with_grads(scene, **fields, gather="packed")
+            for name, a, b in zip(["image", "alpha", *DIFF_INPUTS], apart, packed):
+                assert torch.equal(a, b), (name, fields)
+    with pytest.raises(ValueError, match="gather"):
+        RasterOptions(gather="record")
 
 
 def test_random_scenes_float64_consistency_with_itself():

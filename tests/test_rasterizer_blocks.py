@@ -5,6 +5,8 @@ block reductions are trivial there. With ``wp.config.enable_cpu_blocks`` it runs
 many threads; this test renders with several block shapes in a fresh process (the flag is global)
 and checks every result against the float64 reference.
 """
+import pytest
+
 from securegs_warp.raster_cases import DIFF_INPUTS, run_with_cpu_blocks
 
 SCRIPT = """
@@ -13,15 +15,17 @@ SCRIPT = """
     out = []
     for blocks in [(256, 32, "block"), (64, 64, "block"), (32, 256, "block"), (64, 64, "warp")]:
         for name, scene in [("random", random_scene(30, n=70, width=37, height=29)), ("layers", layered_scene())]:
-            scene.kwargs.update(forward_block=blocks[0], backward_block=blocks[1], backward_walk=blocks[2])
+            scene.kwargs.update(forward_block=blocks[0], backward_block=blocks[1], backward_walk=blocks[2],
+                                gather=GATHER)
             ours, ref = render_both(scene)
             out.append({"blocks": blocks, "scene": name, **error_row(ours, ref)})
     print("RESULT" + json.dumps(out))
 """
 
 
-def test_multithreaded_blocks_match_reference():
-    rows = run_with_cpu_blocks(SCRIPT)
+@pytest.mark.parametrize("gather", ["fields", "packed"])
+def test_multithreaded_blocks_match_reference(gather):
+    rows = run_with_cpu_blocks(SCRIPT.replace("GATHER", repr(gather)))
     assert len(rows) == 8
     for row in rows:
         assert row["image"] <= 1e-4 and row["alpha"] <= 1e-4, row

@@ -75,18 +75,20 @@ def test_float16_batches_twice_the_wide_gaussians():
 COOPERATIVE = """
     from securegs_warp.raster_cases import error_row, float16_rounding, random_scene, render_both, render_with_grads
 
-    scene = random_scene(4, n=70, channels=3, width=37, height=29, color_storage="float16")
+    scene = random_scene(4, n=70, channels=3, width=37, height=29, color_storage="float16", gather=GATHER)
     ours, ref = render_both(scene)
     row = {**error_row(ours, ref), "bound": float16_rounding(scene.colors)}
     scene.colors = torch.round(scene.colors * 256) / 256
-    general = render_with_grads(scene)
-    row["identical"] = all(torch.equal(a, b) for a, b in zip(general, render_with_grads(scene, color_storage="float16")))
+    general = render_with_grads(scene, gather=GATHER)
+    half = render_with_grads(scene, color_storage="float16", gather=GATHER)
+    row["identical"] = all(torch.equal(a, b) for a, b in zip(general, half))
     print("RESULT" + json.dumps(row))
 """
 
 
-def test_float16_cooperative_blocks():
-    row = run_with_cpu_blocks(COOPERATIVE)
+@pytest.mark.parametrize("gather", ["fields", "packed"])  # packed: colours in their own float16 batch
+def test_float16_cooperative_blocks(gather):
+    row = run_with_cpu_blocks(COOPERATIVE.replace("GATHER", repr(gather)))
     assert row["identical"], row
     assert row["image"] <= row["bound"] + IMAGE_TOL, row
     for name in DIFF_INPUTS:

@@ -4,7 +4,7 @@ claims to. Skipped where Warp was built without NVRTC for sm_90."""
 import pytest
 import warp as wp
 
-from securegs_warp.cuda_resources import cubin_resources, kernel_resources
+from securegs_warp.cuda_resources import cubin_resources, kernel_barriers, kernel_resources, ptx_barriers
 from securegs_warp.kernels.blend import blend_kernels
 from securegs_warp.rasterizer import RasterOptions
 
@@ -16,6 +16,27 @@ nvrtc = pytest.mark.skipif(not (_runtime.is_cuda_enabled and 90 in (_runtime.nvr
 
 def backward(max_registers=0, fast_math=False):
     return blend_kernels(3, 16, False, 256, True, "float32", fast_math, True, max_registers)[1]
+
+
+@nvrtc
+def test_packed_records_take_barriers_out_of_the_batch_loop():
+    # Per batch, "fields" pays two barriers per load into shared memory (one before the tile is
+    # overwritten, one after): ids, means2d, conics, opacities, colours (and depths). "packed" pays
+    # one after the ids and one after the records, the backward one more before overwriting the ids
+    # its walk reads; the forward's 4 more are its "all pixels done" vote.
+    for depth in (False, True):
+        fields, packed = (blend_kernels(3, 16, depth, 256, True, "float32", False, packed=p) for p in (False, True))
+        per_batch = [kernel_barriers(k)["loop_barriers"] for k in (*fields, *packed)]
+        assert per_batch == [14 + 2 * depth, 10 + 2 * depth, 6, 3]
+
+
+def test_ptx_barrier_counter_finds_the_innermost_loop():
+    ptx = "\n".join(["bar.sync 0;", "$L__A:", "bar.sync 0;", "$L__B:", "bar.sync 0;", "barrier.sync 0;",
+                     "$L__C:", "add.s32 %r1, %r1, 1;", "@%p1 bra $L__C;", "@%p2 bra $L__B;",
+                     "@%p3 bra.uni $L__A;", "ret;"])
+    assert ptx_barriers(ptx) == {"barriers": 4, "loop_barriers": 2}
+    with pytest.raises(ValueError, match="separate loops"):
+        ptx_barriers("$L__A:\nbar.sync 0;\n@%p1 bra $L__A;\n$L__B:\nbar.sync 0;\n@%p1 bra $L__B;")
 
 
 @nvrtc
