@@ -36,7 +36,9 @@ class RasterOptions:
 
     Accuracy for time (scripts/accuracy_vs_time.py measures both):
     fast_math: projection and blending compiled with Warp's fast math (CUDA only; Warp 1.19's
-        CPU compiler ignores the option, so on the CPU it changes nothing).
+        CPU compiler ignores the option, so on the CPU it changes nothing). On by default because
+        gsplat 1.5 is itself compiled with ``--use_fast_math``; gradients move by up to ~1e-4
+        against the exact float32 path (docs/results.md, "Packed Gaussian records").
     color_storage: "float16" blends from a float16 copy of ``colors`` made once per render (half
         the bytes per colour read, for wide feature fields on the GPU; on the CPU each read pays a
         conversion). The image error is at most the colours' float16 rounding (≤ 2⁻¹¹·max|colour|,
@@ -55,7 +57,7 @@ class RasterOptions:
     antialiased: bool = False
     radius_rule: str = "opacity_aware"
     render_depth: str | None = None
-    fast_math: bool = False
+    fast_math: bool = True
     color_storage: str = "float32"
     # "ellipse": bin a Gaussian only to the tiles of its radius rectangle where opacity·e^(−σ) reaches
     # alpha_min at some pixel centre (an exact ellipse–rectangle test; kernels/binning.py). The image
@@ -93,8 +95,9 @@ class RasterOptions:
     # per batch where "fields" pays four or five (scripts/kernel_registers.py counts the barriers),
     # for N × 12 float32 words more memory (RGB; 4·⌈(7+C)/4⌉ for C float32 colours, 8 with float16
     # colours) and one more launch. Same images and gradients (the same floats in the same order);
-    # scripts/bench_rasterizer.py --variant packed:gather=packed compares them.
-    gather: str = "fields"
+    # scripts/bench_rasterizer.py --variant fields:gather=fields compares them. "packed" by default:
+    # faster in both blending kernels on an H100 (docs/results.md, "Packed Gaussian records").
+    gather: str = "packed"
 
     def __post_init__(self):
         if self.tile_size not in (8, 16, 32):
