@@ -161,9 +161,14 @@ def pack_kernel(channels: int, color_storage: str):
         records[i, _R_CONIC + 2] = cn[2]
         records[i, _R_OPACITY] = opacities[i]
         records[i, _R_DEPTH] = depths[i]
+        used = _R_COLOR
         if wp.static(WITH_COLORS):
             for c in range(C):
                 records[i, _R_COLOR + c] = float(colors[i, c])
+            used = _R_COLOR + C
+        # The padding is gathered with the rest of the row: zero it rather than move uninitialised words.
+        for k in range(used, records.shape[1]):
+            records[i, k] = 0.0
 
     pack.__name__ = pack.__qualname__ = f"pack_records_c{C}_{color_storage}"
     return wp.kernel(pack, enable_backward=False, module="unique")
@@ -173,7 +178,7 @@ def pack_kernel(channels: int, color_storage: str):
 CPU_BATCH = 32
 
 
-def batch_size(channels: int, block: int, with_depth: bool, color_storage: str, packed: bool = False) -> int:
+def batch_size(channels: int, block: int, with_depth: bool, color_storage: str, packed: bool) -> int:
     """Gaussians gathered per batch: one per thread of the block (at least 32), fewer when the
     feature channels are wide enough to overflow the shared-memory budget (``packed``: the batch
     holds records of ``record_width`` words)."""
@@ -191,8 +196,8 @@ def batch_size(channels: int, block: int, with_depth: bool, color_storage: str, 
 
 @functools.lru_cache(maxsize=None)
 def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
-                  color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0,
-                  packed: bool = False):
+                  color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0, *,
+                  packed: bool):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 

@@ -8,7 +8,7 @@ A sweep *section* is a function ``(args) -> rows`` (one dict per point and scene
 ``SECTIONS`` with the columns its plot draws: ``x`` a time (lower is better) and ``y`` an accuracy
 (higher is better). Rows share ``section``, ``scene`` and ``point``; other keys are the section's own
 columns. The rasterizer section moves one knob at a time away from the default (alpha_min,
-transmittance_min, radius_rule, tile_size, fast_math, color_storage) and measures, per point:
+transmittance_min, radius_rule, tile_size, fast_math, color_storage, gather) and measures, per point:
 
 - error on a small scene (``--small``) against the float64 dense reference (securegs_warp/reference.py)
   rendered with the *default* options, so that a knob's error is its departure from the exact

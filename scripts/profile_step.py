@@ -96,5 +96,6 @@ def main():
         with open(os.path.join(args.out, "profile_step.md"), "w") as f:
             f.write(text + "\n")
 
+
 if __name__ == "__main__":
     main()

@@ -37,8 +37,8 @@ class RasterOptions:
     Accuracy for time (scripts/accuracy_vs_time.py measures both):
     fast_math: projection and blending compiled with Warp's fast math (CUDA only; Warp 1.19's
         CPU compiler ignores the option, so on the CPU it changes nothing). On by default because
-        gsplat 1.5 is itself compiled with ``--use_fast_math``; gradients move by up to ~1e-4
-        against the exact float32 path (docs/results.md, "Packed Gaussian records").
+        gsplat 1.5 is itself compiled with ``--use_fast_math``; gradients move by up to 6.6e-5
+        (largest absolute difference) against the exact float32 path (docs/results.md, "Packed Gaussian records").
     color_storage: "float16" blends from a float16 copy of ``colors`` made once per render (half
         the bytes per colour read, for wide feature fields on the GPU; on the CPU each read pays a
         conversion). The image error is at most the colours' float16 rounding (≤ 2⁻¹¹·max|colour|,
@@ -94,7 +94,9 @@ class RasterOptions:
     # load into shared memory ends in a block barrier, so "packed" pays one global-memory latency
     # per batch where "fields" pays four or five (scripts/kernel_registers.py counts the barriers),
     # for N × 12 float32 words more memory (RGB; 4·⌈(7+C)/4⌉ for C float32 colours, 8 with float16
-    # colours) and one more launch. Same images and gradients (the same floats in the same order);
+    # colours) and one more launch. Bit-identical images and gradients on the CPU; on CUDA the
+    # gradients' atomic sums add in a varying order for either gather (packed against fields:
+    # within 6e-6 on an H100);
     # scripts/bench_rasterizer.py --variant fields:gather=fields compares them. "packed" by default:
     # faster in both blending kernels on an H100 (docs/results.md, "Packed Gaussian records").
     gather: str = "packed"
@@ -503,7 +505,7 @@ def blend_kernels_for(opts: RasterOptions, channels: int, with_depth: bool, coop
     batch = batch_size(channels, opts.block(opts.forward_block), with_depth, opts.color_storage, packed) \
         if cooperative else CPU_BATCH
     return blend_kernels(channels, opts.tile_size, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
-                         opts.backward_walk == "warp", opts.backward_max_registers, packed)
+                         opts.backward_walk == "warp", opts.backward_max_registers, packed=packed)
 
 
 class _Scope:

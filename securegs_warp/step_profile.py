@@ -142,8 +142,8 @@ def profile_steps(trainer, steps: int) -> dict:
 
 # What ``count_ops`` counts per section, per step: torch.profiler's top-level aten ops (forward and
 # those the autograd backward runs), the autograd nodes evaluated, the host reads of device values
-# (item, nonzero, equal: a synchronisation each on CUDA), the CUDA kernel launches and copies
-# (CUDA only), and the Warp launches.
+# (item, nonzero, equal: a synchronisation each on CUDA), the CUDA kernel launches and copies (memsets
+# included; CUDA only), and the Warp launches.
 COUNTS = ("aten ops", "autograd nodes", "host reads", "cuda launches", "cuda copies", "warp launches")
 HOST_COUNTS = ("aten ops", "autograd nodes", "host reads", "warp launches")  # those a CPU run has
 _CUDA_LAUNCHES = ("cudaLaunchKernel", "cuLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernelEx",

@@ -42,7 +42,7 @@ def fresh_pool():
 
 @pytest.mark.parametrize("options", [{}, {"tile_size": 8, "render_depth": "accumulated"},
                                      {"tile_overlap": "rectangle", "color_storage": "float16"},
-                                     {"gather": "packed", "render_depth": "accumulated"}])
+                                     {"gather": "fields", "render_depth": "accumulated"}])
 def test_captured_matches_eager(options):
     scene = random_scene(11, n=70, **options)
     eager = render(scene, False)

@@ -67,7 +67,7 @@ def test_float16_overflow_raises():
 
 def test_float16_batches_twice_the_wide_gaussians():
     # 64 channels: 288 B per float32 Gaussian overflow the shared-memory budget at 128 per batch.
-    assert batch_size(64, 256, False, "float16") == 2 * batch_size(64, 256, False, "float32")
+    assert batch_size(64, 256, False, "float16", False) == 2 * batch_size(64, 256, False, "float32", False)
 
 
 # The cooperative (CUDA) code path gathers the float16 colours into shared memory; run it on the
@@ -119,7 +119,7 @@ def test_fast_math_is_a_module_option_of_its_own_kernels():
     slow, fast = (projection_kernel(False, "opacity_aware", f) for f in (False, True))
     assert slow.module is not fast.module
     assert slow.module.options["fast_math"] is False and fast.module.options["fast_math"] is True
-    for kernel in blend_kernels(3, 16, False, 32, False, "float32", True):
+    for kernel in blend_kernels(3, 16, False, 32, False, "float32", True, packed=False):
         assert kernel.module.options["fast_math"] is True
 
 

@@ -15,7 +15,7 @@ nvrtc = pytest.mark.skipif(not (_runtime.is_cuda_enabled and 90 in (_runtime.nvr
 
 
 def backward(max_registers=0, fast_math=False):
-    return blend_kernels(3, 16, False, 256, True, "float32", fast_math, True, max_registers)[1]
+    return blend_kernels(3, 16, False, 256, True, "float32", fast_math, True, max_registers, packed=False)[1]
 
 
 @nvrtc

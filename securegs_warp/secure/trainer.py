@@ -69,7 +69,8 @@ class SecureTrainer(ScaffoldTrainer):
         strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
                              and any(p.spec.kind in ("object", "image") for p in self.payloads))
         self.strategy = strategy  # the private heads, built with the model, read its mode
-        self._fitted_positions = None  # the anchor positions after_update last refitted to
+        # (version, positions, bit decoders) after_update last refitted to (see after_update)
+        self._fitted = None
         self._projections = []  # each bit decoder's BitProjection of those positions
         super().__init__(scene, config, device=device, strategy=strategy)
 
@@ -167,13 +168,16 @@ class SecureTrainer(ScaffoldTrainer):
         anchors = self.model.anchors
         # Anchor positions train at learning rate 0 (as Scaffold-GS's), so they change only when
         # densification (or a restore) replaces the tensor: the serving radii and each anchor's bit
-        # are refitted then, not every step (each refit costs a sort and a device-to-host read).
-        if self._fitted_positions is not anchors.xyz:
+        # are refitted then, not every step (each refit costs a sort and a device-to-host read). The
+        # key also holds the tensor's version (an in-place edit) and the bit decoders (a new message).
+        fitted = (anchors.xyz._version, anchors.xyz, *(private.bits for private in self.model.secrets))
+        if (self._fitted is None or len(fitted) != len(self._fitted) or fitted[0] != self._fitted[0]
+                or any(a is not b for a, b in zip(fitted[1:], self._fitted[1:]))):
             for private in self.model.secrets:
                 private.fix_serving(anchors.xyz)
             self._projections = [private.bits.projection(anchors.xyz) for private in self.model.secrets
                                  if private.bits is not None]
-            self._fitted_positions = anchors.xyz
+            self._fitted = fitted
         decoders = [private.bits for private in self.model.secrets if private.bits is not None]
         if not decoders:
             return

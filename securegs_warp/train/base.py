@@ -90,26 +90,24 @@ class ViewTrainer:
         return self.model.render(cam, self.config.raster, background=self.background, camera_index=camera_index)
 
     def image_loss(self, out: dict, target: torch.Tensor) -> torch.Tensor:
-        """(1 − α)·L1 + α·(1 − SSIM) of one render, plus its ``regularizer``."""
-        loss = photometric_loss(out["image"], target, self.config.ssim_weight)
-        regularizer = self.regularizer(out)
-        return loss if regularizer is None else loss + regularizer
+        """(1 − α)·L1 + α·(1 − SSIM) of one render, plus its ``regularizer``: ``image_losses`` of it alone."""
+        return self.image_losses([(out, target, 1.0)])
 
     def image_losses(self, renders: list) -> torch.Tensor:
-        """Σ weight · ``image_loss(out, target)`` over ``renders`` [(out, target, weight)], the
-        photometric terms of images of one shape in one batched call (a SecureGS step's public and
-        hidden renders; the same sum as separate calls up to float rounding)."""
+        """Σ weight · ((1 − α)·L1 + α·(1 − SSIM) + ``regularizer``) over ``renders`` [(out, target,
+        weight)]; the photometric terms of images of one shape in one batched call (a SecureGS step's
+        public and hidden renders: half the launches of separate calls, the same sum up to float
+        rounding). Subclasses change a render's loss through ``regularizer``."""
         images = [out["image"] for out, _, _ in renders]
+        targets = [target for _, target, _ in renders]
         if len({image.shape for image in images}) > 1:
-            terms = [self.image_loss(out, target) for out, target, _ in renders]
+            terms = [photometric_loss(image, target, self.config.ssim_weight) for image, target in zip(images, targets)]
         else:
-            stacked = (images[0][None], renders[0][1][None]) if len(renders) == 1 else (
-                torch.stack(images), torch.stack([target for _, target, _ in renders]))
-            terms = batch_photometric_loss(*stacked, self.config.ssim_weight).unbind()
-            regularizers = [self.regularizer(out) for out, _, _ in renders]
-            terms = [t if r is None else t + r for t, r in zip(terms, regularizers)]
+            terms = batch_photometric_loss(torch.stack(images), torch.stack(targets), self.config.ssim_weight).unbind()
         loss = None
-        for term, (_, _, weight) in zip(terms, renders):
+        for term, (out, _, weight) in zip(terms, renders):
+            regularizer = self.regularizer(out)
+            term = term if regularizer is None else term + regularizer
             term = term if weight == 1.0 else weight * term
             loss = term if loss is None else loss + term
         return loss
@@ -261,8 +259,9 @@ def nonfinite_gradient_counts(optimizer: torch.optim.Optimizer) -> dict[str, int
     The trainer skips a step with any such entry: no optimizer step, and no densification step
     either (neither its statistics nor, on an update step, growth and pruning, which wait for the
     next update). Both ways of going on can damage the model:
-    - Applied, an inf or NaN reaches Adam, whose update of a parameter trained at learning rate 0
-      is 0 · m/√v = NaN for good (an anchor would drop out of every view and never be pruned).
+    - Applied, an inf or NaN reaches Adam and becomes NaN in its moments for good: the parameter's
+      later updates are NaN however small the learning rate (an anchor would drop out of every view
+      and never be pruned).
     - Zeroing just those entries applies the rest of a gradient computed through an overflow, whose
       finite entries may be huge as well; one huge gradient fills Adam's second moment, and the
       entry then barely moves for thousands of steps. Mixed-precision training skips such steps for
