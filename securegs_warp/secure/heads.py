@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from ..model import ScaffoldHeads, make_mlp
+from ..kept import Kept
 from ..model.neural_gaussians import AnchorViewInputs
 from .keyed_bits import KeyedBitDecoder
 
@@ -75,7 +76,7 @@ class PrivateHeads(nn.Module):
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
         self.bits = None
         self.set_message(message, bit_seed, bit_cell)
-        self._serving_kept = None  # (sources, their versions, the mask) of the last serving_mask
+        self._serving = Kept()  # the last serving_mask, while positions, radius and box are unchanged
 
     def set_message(self, message: str | None, bit_seed: str | None, bit_cell: float | None) -> None:
         """(Re)derive the bit decoder (on the CPU) from the message (L characters 0/1), its seed (hex)
@@ -139,16 +140,10 @@ class PrivateHeads(nn.Module):
         with ``serving`` 0 (the view's visible anchors decode)."""
         if not self.serves_by_radius:
             return None
-        # Kept while the positions, the radius and the box are the same tensors with the same values
-        # (no in-place write since: ``_version``): training renders the same anchors every step.
-        sources = (xyz, self.serving_radius, self.box)
-        versions = tuple(t._version for t in sources)
-        kept = self._serving_kept
-        if kept is not None and all(a is b for a, b in zip(kept[0], sources)) and kept[1] == versions:
-            return kept[2]
-        mask = self.box_distance(xyz) <= self.serving_radius
-        self._serving_kept = (sources, versions, mask)
-        return mask
+        # Training renders the same anchors every step: the mask is kept while they, the radius and
+        # the box are unchanged.
+        return self._serving.get((xyz, self.serving_radius, self.box),
+                                 lambda: self.box_distance(xyz) <= self.serving_radius)
 
     def bit_logits(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-anchor bit logits [N] and the bit each anchor votes on [N] (int64), from anchor

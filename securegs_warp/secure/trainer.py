@@ -17,6 +17,7 @@ import torch
 from .. import evaluation
 from ..config import SecureConfig, TrainConfig
 from ..data import Camera, SceneData
+from ..kept import Kept
 from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer
 from .heads import PrivateHeads
@@ -69,9 +70,8 @@ class SecureTrainer(ScaffoldTrainer):
         strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
                              and any(p.spec.kind in ("object", "image") for p in self.payloads))
         self.strategy = strategy  # the private heads, built with the model, read its mode
-        # (version, positions, bit decoders) after_update last refitted to (see after_update)
-        self._fitted = None
-        self._projections = []  # each bit decoder's BitProjection of those positions
+        # Each bit decoder's BitProjection of the anchor positions after_update last refitted to.
+        self._projections = Kept()
         super().__init__(scene, config, device=device, strategy=strategy)
 
     @property
@@ -168,22 +168,20 @@ class SecureTrainer(ScaffoldTrainer):
         anchors = self.model.anchors
         # Anchor positions train at learning rate 0 (as Scaffold-GS's), so they change only when
         # densification (or a restore) replaces the tensor: the serving radii and each anchor's bit
-        # are refitted then, not every step (each refit costs a sort and a device-to-host read). The
-        # key also holds the tensor's version (an in-place edit) and the bit decoders (a new message).
-        fitted = (anchors.xyz._version, anchors.xyz, *(private.bits for private in self.model.secrets))
-        if (self._fitted is None or len(fitted) != len(self._fitted) or fitted[0] != self._fitted[0]
-                or any(a is not b for a, b in zip(fitted[1:], self._fitted[1:]))):
+        # are refitted then, or after a new message, not every step (each refit costs a sort and a
+        # device-to-host read).
+        def refit():
             for private in self.model.secrets:
                 private.fix_serving(anchors.xyz)
-            self._projections = [private.bits.projection(anchors.xyz) for private in self.model.secrets
-                                 if private.bits is not None]
-            self._fitted = fitted
+            return [private.bits.projection(anchors.xyz) for private in self.model.secrets if private.bits is not None]
+
+        projections = self._projections.get((anchors.xyz, *(private.bits for private in self.model.secrets)), refit)
         decoders = [private.bits for private in self.model.secrets if private.bits is not None]
         if not decoders:
             return
         feat = anchors.feat.detach()
         for _ in range(PROJECTION_ROUNDS if len(decoders) > 1 else 1):
-            for decoder, projection in zip(decoders, self._projections):
+            for decoder, projection in zip(decoders, projections):
                 feat = decoder.project(feat, anchors.xyz, self.secure.bit_margin, projection)
         anchors.feat.copy_(feat)
 
