@@ -186,7 +186,7 @@ class StegaNeRFConfig:
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
 # the hidden object (the key keeps the radius that takes them in), through MLPs `width` wide
 # (docs/results.md, "Geometric security", measures them).
-BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024}
+BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 0, "depth": 1}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -228,6 +228,9 @@ class SecureConfig:
         MLPs' hidden width and, in the box frame, how many anchors nearest the box decode hidden
         Gaussians. None: the public k and d and every visible anchor in the anchor frame,
         BOX_FRAME_DEFAULTS in the box frame.
+    hidden_encoding, hidden_depth: the box frame's F_o†: octaves of sines and cosines of the anchor's
+        box position it reads (0: the position alone) and its number of hidden layers
+        (``PrivateHeads`` encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, 0 and 1 in the anchor frame.
     """
 
     payload: str = "object+bits:48"
@@ -244,6 +247,8 @@ class SecureConfig:
     hidden_offsets: int | None = None
     hidden_width: int | None = None
     hidden_anchors: int | None = None
+    hidden_encoding: int | None = None
+    hidden_depth: int | None = None
 
     def strategy_mode(self, kinds) -> str:
         """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):
@@ -260,16 +265,20 @@ class SecureConfig:
         serving) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of density ``mode``
         (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
-        defaults = BOX_FRAME_DEFAULTS if frame == "box" else {"n_hidden": None, "width": None, "serving": 0}
-        given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors}
+        defaults = BOX_FRAME_DEFAULTS if frame == "box" else \
+            {"n_hidden": None, "width": None, "serving": 0, "encoding": 0, "depth": 1}
+        given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors,
+                 "encoding": self.hidden_encoding, "depth": self.hidden_depth}
         return {"frame": frame, **{name: defaults[name] if value is None else value for name, value in given.items()}}
 
     def __post_init__(self):
         if self.hidden_frame not in (None, "anchor", "box"):
             raise ValueError(f"hidden_frame must be 'anchor' or 'box', got {self.hidden_frame!r}")
-        for name in ("hidden_offsets", "hidden_width", "hidden_anchors"):
+        for name in ("hidden_offsets", "hidden_width", "hidden_anchors", "hidden_depth"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.hidden_encoding is not None and self.hidden_encoding < 0:
+            raise ValueError(f"hidden_encoding must be >= 0, got {self.hidden_encoding}")
         if self.hidden_weight is not None and not self.hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {self.hidden_weight}")
         if not self.bit_margin > 0.0:

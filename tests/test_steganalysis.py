@@ -1,6 +1,7 @@
 """Steganalysis (secure.steganalysis, securegs audit), the box-frame hiding mode and the placement
 of hidden objects in the synthetic scene."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -100,13 +101,34 @@ def test_cover_mode_grows_no_anchor_for_the_hidden_object(scene):
 def test_box_frame_options_are_in_the_key_and_reveal_rebuilds_them(tmp_path):
     out = tmp_path / "c"
     assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
-                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", *TINY]) == 0
+                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40",
+                 "--hidden-encoding", "2", "--hidden-depth", "2", *TINY]) == 0
     model, meta = open_container(out / "public", out / "key.safetensors")
     assert meta["heads"]["frame"] == "box" and (meta["heads"]["n_hidden"], meta["heads"]["width"]) == (3, 8)
+    assert (meta["heads"]["encoding"], meta["heads"]["depth"]) == (2, 2)
     assert model.private.serving == 40 and model.private.box[1].min() > 0
+    # F_o† reads the feature and 3 (1 + 2·2) encoded coordinates, through two hidden layers.
+    linears = [m for m in model.private.offset_mlp if isinstance(m, torch.nn.Linear)]
+    assert [m.in_features for m in linears] == [model.private.feat_dim + 15, 8, 8]
     revealed = tmp_path / "r"
     assert main(["reveal", str(out / "public"), "--key", str(out / "key.safetensors"), "--out", str(revealed)]) == 0
     assert any(p.name.startswith("hidden_") for p in (revealed / "renders").iterdir())
+
+
+def test_the_box_encoding_holds_octaves_of_the_position():
+    from securegs_warp.model import ScaffoldHeads
+    from securegs_warp.secure.heads import PrivateHeads
+
+    private = PrivateHeads(ScaffoldHeads(8, 2), frame="box", n_hidden=2, width=8, encoding=3)
+    where = torch.tensor([[0.25, -0.5, 0.0]])
+    code = private.encode(where)
+    assert code.shape == (1, 21) and torch.equal(code[0, :3], where[0])
+    # octave l of axis x: sin(2^l π x) at column 3 + 3l, cos at 12 + 3l
+    for level in range(3):
+        assert code[0, 3 + 3 * level].item() == pytest.approx(math.sin(2 ** level * math.pi * 0.25), abs=1e-6)
+        assert code[0, 12 + 3 * level].item() == pytest.approx(math.cos(2 ** level * math.pi * 0.25), abs=1e-6)
+    with pytest.raises(ValueError, match="frame='box'"):
+        PrivateHeads(ScaffoldHeads(8, 2), encoding=2)
 
 
 def test_serving_is_a_count_inside_the_box_and_its_radius_lies_between_anchors():

@@ -58,6 +58,9 @@ SECURE_FLAGS = (
                                               "32 otherwise)"),
     ("--hidden-anchors", "secure.hidden_anchors", "box frame: how many anchors nearest the object decode it "
                                                   "(default 1024)"),
+    ("--hidden-encoding", "secure.hidden_encoding", "box frame: octaves of sines and cosines of the anchor's "
+                                                    "position that F_o† reads (default 0: the position alone)"),
+    ("--hidden-depth", "secure.hidden_depth", "box frame: hidden layers of F_o† (default 1)"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "
                                                 "image, 1 for a scene); lower keeps the cover closer to plain "
                                                 "Scaffold-GS"),

@@ -25,15 +25,19 @@ from torch import nn
 
 
 def make_mlp(in_dim: int, hidden_dim: int, out_dim: int, activation: nn.Module | None = None,
-             bias: bool = True) -> nn.Sequential:
+             bias: bool = True, depth: int = 1) -> nn.Sequential:
     """Scaffold-GS's two-layer head: Linear, ReLU, Linear, then ``activation`` if given (``bias``:
-    whether the Linear layers have biases).
+    whether the Linear layers have biases); ``depth`` hidden layers (Linear, ReLU each) before the
+    last Linear.
 
-    The Linear layers are modules ``0`` and ``2``, so state-dict keys are ``0.weight``, ``0.bias``,
-    ``2.weight``, ``2.bias`` (no ``.bias`` keys without biases) whatever the activation, as in
-    Scaffold-GS's files.
+    The Linear layers are modules ``0`` and ``2`` (then ``4``, ... with more depth), so state-dict
+    keys are ``0.weight``, ``0.bias``, ``2.weight``, ``2.bias`` (no ``.bias`` keys without biases)
+    whatever the activation, as in Scaffold-GS's files.
     """
-    layers = [nn.Linear(in_dim, hidden_dim, bias=bias), nn.ReLU(True), nn.Linear(hidden_dim, out_dim, bias=bias)]
+    layers = [nn.Linear(in_dim, hidden_dim, bias=bias), nn.ReLU(True)]
+    for _ in range(depth - 1):
+        layers += [nn.Linear(hidden_dim, hidden_dim, bias=bias), nn.ReLU(True)]
+    layers.append(nn.Linear(hidden_dim, out_dim, bias=bias))
     if activation is not None:
         layers.append(activation)
     return nn.Sequential(*layers)

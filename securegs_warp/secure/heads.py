@@ -4,6 +4,8 @@ They read the same public anchors as the public heads; nothing of them is in the
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -45,6 +47,11 @@ class PrivateHeads(nn.Module):
             the cover's own anchors, wherever the cover put them.
     n_hidden: k_hid, hidden Gaussians per anchor (None: the public k).
     width: hidden width of the private MLPs (None: d).
+    encoding: in the box frame, F_o† reads the anchor's box position p through L octaves of sines
+        and cosines, [p, sin(2^l π p), cos(2^l π p)] for l < L (0: p alone). One hidden layer on raw
+        coordinates gives smooth functions of position; the octaves let neighbouring anchors place
+        their Gaussians independently, which fine detail needs.
+    depth: the number of hidden layers of F_o† (1: Scaffold-GS's Linear, ReLU, Linear).
     serving: in the box frame, how many anchors, nearest the box first, decode hidden Gaussians (0:
         every anchor that the view shows). Training keeps ``serving_radius`` (a buffer in the units of
         ``box_distance``, saved in the key) just beyond the serving-th nearest anchor
@@ -56,21 +63,28 @@ class PrivateHeads(nn.Module):
     def __init__(self, public: ScaffoldHeads, *, message: str | None = None, bit_seed: str | None = None,
                  bit_cell: float | None = None,
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
-                 n_hidden: int | None = None, width: int | None = None, serving: int = 0):
+                 n_hidden: int | None = None, width: int | None = None, serving: int = 0,
+                 encoding: int = 0, depth: int = 1):
         super().__init__()
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
         if frame == "box" and not offsets:
             raise ValueError("the box frame places hidden Gaussians with F_o†: it needs offsets=True")
+        if encoding < 0 or depth < 1:
+            raise ValueError(f"encoding must be >= 0 and depth >= 1, got {encoding} and {depth}")
+        if encoding and frame != "box":
+            raise ValueError("encoding applies to the box frame's positions: it needs frame='box'")
         d = public.feat_dim
         k = public.n_offsets if n_hidden is None else int(n_hidden)
         w = d if width is None else int(width)
         self.feat_dim, self.n_offsets, self.scale_offsets = d, k, scale_offsets
         self.frame, self.width, self.serving = frame, w, int(serving)
+        self.encoding, self.depth = int(encoding), int(depth)
         self.decoder = ScaffoldHeads(d, k, use_feat_bank=public.use_feat_bank,
                                      add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
                                      add_color_dist=public.add_color_dist, width=w) if hidden else None
-        self.offset_mlp = make_mlp(d + 3, w, 3 * k) if hidden and offsets else None
+        self.offset_mlp = make_mlp(d + 3 * (1 + 2 * self.encoding), w, 3 * k, depth=self.depth) \
+            if hidden and offsets else None
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
@@ -94,10 +108,17 @@ class PrivateHeads(nn.Module):
         if self.frame == "box":
             centre, half = self.box[0], self.box[1]
             where = (inputs.xyz.detach() - centre) / half
-            raw = self.offset_mlp(torch.cat([inputs.feat, where], dim=1)).view(-1, self.n_offsets, 3)
+            raw = self.offset_mlp(torch.cat([inputs.feat, self.encode(where)], dim=1)).view(-1, self.n_offsets, 3)
             return centre + half * torch.tanh(raw) - inputs.xyz[:, None, :].detach()
         raw = self.offset_mlp(torch.cat([inputs.feat, inputs.ob_view], dim=1)).view(-1, self.n_offsets, 3)
         return raw * inputs.scaling[:, None, :3] if self.scale_offsets else raw
+
+    def encode(self, where: torch.Tensor) -> torch.Tensor:
+        """[N, 3(1 + 2L)]: box positions [N, 3] and their L octaves of sines and cosines."""
+        if not self.encoding:
+            return where
+        angles = where[:, None, :] * (math.pi * 2.0 ** torch.arange(self.encoding, device=where.device))[None, :, None]
+        return torch.cat([where, torch.sin(angles).flatten(1), torch.cos(angles).flatten(1)], dim=1)
 
     def set_box(self, lo, hi) -> None:
         """The box frame's region: corners ``lo``, ``hi`` [3] in world units."""
@@ -169,4 +190,4 @@ class PrivateHeads(nn.Module):
                                            "bit_cell": self.bits.cell}
         return {**bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
                 "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
-                "width": self.width, "serving": self.serving}
+                "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth}
