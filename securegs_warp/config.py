@@ -228,6 +228,9 @@ class SecureConfig:
         MLPs' hidden width and, in the box frame, how many anchors nearest the box decode hidden
         Gaussians. None: the public k and d and every visible anchor in the anchor frame,
         BOX_FRAME_DEFAULTS in the box frame.
+    hidden_crop: in the box frame, train each hidden render on the tile-aligned part of the view
+        that the key's box can reach (``secure.crop``): the rest of an object's hidden view is
+        background in the render and the target alike. False renders and scores whole views.
     hidden_encoding, hidden_depth: the box frame's F_o†: octaves of sines and cosines of the anchor's
         box position it reads (0: the position alone) and its number of hidden layers
         (``PrivateHeads`` encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, 0 and 1 in the anchor frame.
@@ -249,6 +252,7 @@ class SecureConfig:
     hidden_anchors: int | None = None
     hidden_encoding: int | None = None
     hidden_depth: int | None = None
+    hidden_crop: bool = True
 
     def strategy_mode(self, kinds) -> str:
         """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import numpy as np
 import torch
@@ -20,6 +21,7 @@ from ..data import Camera, SceneData
 from ..kept import Kept
 from ..train.losses import psnr
 from ..train.trainer import ScaffoldTrainer
+from .crop import Crop, box_crop
 from .heads import PrivateHeads
 from .keyed_bits import new_seed
 from .model import SecureModel
@@ -72,6 +74,8 @@ class SecureTrainer(ScaffoldTrainer):
         self.strategy = strategy  # the private heads, built with the model, read its mode
         # Each bit decoder's BitProjection of the anchor positions after_update last refitted to.
         self._projections = Kept()
+        # Each secret's crops (view index -> Crop or None), kept while its box is unchanged.
+        self._crops = [Kept() for _ in self.payloads]
         super().__init__(scene, config, device=device, strategy=strategy)
 
     @property
@@ -147,15 +151,33 @@ class SecureTrainer(ScaffoldTrainer):
                 continue
             # Same view and same anchors as the public render: its visibility test holds as it is.
             visible = branches["public"][0]["visible_mask"] if view == index and anchors is None else None
-            out = self.render_hidden(self.scene.train[view], camera_index=view, step=step, anchors=anchors,
-                                     secret=secret, visible=visible)
+            crop = self._hidden_crop(secret, view)
+            out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
+                                     step=step, anchors=anchors, secret=secret, visible=visible)
             target = p.views[view] if p.views is not None else p.image
+            share = 1.0
+            if crop is not None:
+                target, share = target[crop.rows, crop.cols], crop.share
+                out["pixel_share"] = share
             renders.append((out, target, p.weight))
             hidden.append((out["gaussians"], out["info"], p.weight))
-            extra["psnr_hidden" + secret_suffix(secret)] = functools.partial(psnr, out["image"].detach(), target)
+            extra["psnr_hidden" + secret_suffix(secret)] = functools.partial(view_psnr, out["image"].detach(),
+                                                                             target, share)
         if hidden:
             branches["hidden"] = hidden
         return extra
+
+    def _hidden_crop(self, secret: int, view: int) -> Crop | None:
+        """The part of training view ``view`` that secret ``secret``'s hidden render is trained on
+        (``SecureConfig.hidden_crop``; box-frame keys of object payloads), or None: the whole view."""
+        private, payload = self.model.secrets[secret], self.payloads[secret]
+        if not (self.secure.hidden_crop and private.frame == "box" and payload.spec.kind == "object"):
+            return None
+        crops = self._crops[secret].get((private.box,), dict)
+        if view not in crops:  # one host read of the box per view and box
+            crops[view] = box_crop(self.scene.train[view], private.box.detach().cpu().numpy(),
+                                   self.config.raster.tile_size)
+        return crops[view]
 
     @torch.no_grad()
     def after_update(self) -> None:
@@ -264,6 +286,12 @@ class SecureTrainer(ScaffoldTrainer):
                 p.bits = message.to(self.device)
                 private.set_message(message_string(p.bits), seed, private.bits.cell)
                 private.to(self.device)
+
+
+def view_psnr(image: torch.Tensor, target: torch.Tensor, share: float) -> float:
+    """PSNR in dB over a whole view of a render [h, w, 3] of part of it against the same part of
+    the target, the rest of the view (1 − ``share`` of its pixels) matching exactly."""
+    return psnr(image, target) - 10.0 * math.log10(share)
 
 
 def flat_image_psnr(targets: list[torch.Tensor]) -> float:

@@ -94,10 +94,12 @@ class ViewTrainer:
         return self.image_losses([(out, target, 1.0)])
 
     def image_losses(self, renders: list) -> torch.Tensor:
-        """Σ weight · ((1 − α)·L1 + α·(1 − SSIM) + ``regularizer``) over ``renders`` [(out, target,
-        weight)]; the photometric terms of images of one shape in one batched call (a SecureGS step's
-        public and hidden renders: half the launches of separate calls, the same sum up to float
-        rounding). Subclasses change a render's loss through ``regularizer``."""
+        """Σ weight · (share · ((1 − α)·L1 + α·(1 − SSIM)) + ``regularizer``) over ``renders`` [(out,
+        target, weight)]; the photometric terms of images of one shape in one batched call (a SecureGS
+        step's public and hidden renders: half the launches of separate calls, the same sum up to float
+        rounding). share: ``out["pixel_share"]`` for a render of part of a view (the part's share of
+        the view's pixels, the rest being background in both; secure.crop), else 1. Subclasses
+        change a render's loss through ``regularizer``."""
         images = [out["image"] for out, _, _ in renders]
         targets = [target for _, target, _ in renders]
         if len({image.shape for image in images}) > 1:
@@ -106,6 +108,8 @@ class ViewTrainer:
             terms = batch_photometric_loss(torch.stack(images), torch.stack(targets), self.config.ssim_weight).unbind()
         loss = None
         for term, (out, _, weight) in zip(terms, renders):
+            share = out.get("pixel_share")
+            term = term if share is None else share * term
             regularizer = self.regularizer(out)
             term = term if regularizer is None else term + regularizer
             term = term if weight == 1.0 else weight * term
