@@ -230,7 +230,9 @@ class SecureConfig:
         BOX_FRAME_DEFAULTS in the box frame.
     hidden_crop: in the box frame, train each hidden render on the tile-aligned part of the view
         that the key's box can reach (``secure.crop``): the rest of an object's hidden view is
-        background in the render and the target alike. False renders and scores whole views.
+        background in the target, and in the render up to the tails of splats near the box's faces,
+        which the crop leaves untrained. Off by default: what it saves in time it may cost in hidden
+        fidelity (docs/results.md, "the hidden crop").
     hidden_encoding, hidden_depth: the box frame's F_o†: octaves of sines and cosines of the anchor's
         box position it reads (0: the position alone) and its number of hidden layers
         (``PrivateHeads`` encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, 0 and 1 in the anchor frame.
@@ -252,7 +254,7 @@ class SecureConfig:
     hidden_anchors: int | None = None
     hidden_encoding: int | None = None
     hidden_depth: int | None = None
-    hidden_crop: bool = True
+    hidden_crop: bool = False
 
     def strategy_mode(self, kinds) -> str:
         """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):

@@ -51,7 +51,8 @@ def test_views_the_box_fills_or_reaches_behind_are_rendered_whole():
 def trainer():
     scene = make_synthetic_scene(hidden="mug", level="object", width=96, height=72, n_train=4, n_test=1, n_points=600)
     secure = apply_overrides(SecureConfig(payload="object"), {"strategy.mode": "cover", "hidden_offsets": 4,
-                                                              "hidden_width": 16, "hidden_anchors": 60})
+                                                              "hidden_width": 16, "hidden_anchors": 60,
+                                                              "hidden_crop": True})
     t = SecureTrainer(scene, TrainConfig(iterations=10, raster=RasterOptions(tile_size=8)), secure)
     for _ in range(3):
         t.step()
