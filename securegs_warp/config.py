@@ -228,14 +228,14 @@ class SecureConfig:
         MLPs' hidden width and, in the box frame, how many anchors nearest the box decode hidden
         Gaussians. None: the public k and d and every visible anchor in the anchor frame,
         BOX_FRAME_DEFAULTS in the box frame.
-    hidden_crop: in the box frame, train each hidden render on the tile-aligned part of the view
+    hidden_crop: in the box frame and the cover mode, train each hidden render on the tile-aligned part of the view
         that the key's box can reach (``secure.crop``): the rest of an object's hidden view is
         background in the target, and in the render up to the tails of splats near the box's faces,
         which the crop leaves untrained. Off by default: what it saves in time it may cost in hidden
         fidelity (docs/results.md, "the hidden crop").
-    hidden_encoding, hidden_depth: the box frame's F_o†: octaves of sines and cosines of the anchor's
-        box position it reads (0: the position alone) and its number of hidden layers
-        (``PrivateHeads`` encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, 0 and 1 in the anchor frame.
+    hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
+        (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
+        encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, 0 and 1 in the anchor frame.
     """
 
     payload: str = "object+bits:48"
@@ -268,7 +268,7 @@ class SecureConfig:
 
     def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
-        serving) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of density ``mode``
+        serving, encoding, depth) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of density ``mode``
         (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else \

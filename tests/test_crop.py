@@ -90,3 +90,25 @@ def test_the_cropped_loss_weighs_pixels_as_the_whole_view(trainer, monkeypatch):
             losses[name] = trainer.image_losses([(out, target, 1.0)]).item()
         assert ("pixel_share" in out) == use
     assert losses["crop"] == pytest.approx(losses["whole"], rel=0.02)
+
+
+def test_the_share_weighs_the_image_term_and_not_the_regulariser(trainer, monkeypatch):
+    from securegs_warp.train.losses import photometric_loss
+
+    monkeypatch.setattr(trainer, "regularizer", lambda out: torch.tensor(0.5))
+    image, target = torch.rand(8, 8, 3), torch.rand(8, 8, 3)
+    term = photometric_loss(image, target, trainer.config.ssim_weight).item()
+    got = trainer.image_losses([({"image": image, "pixel_share": 0.25}, target, 2.0)]).item()
+    assert got == pytest.approx(2.0 * (0.25 * term + 0.5), rel=1e-6)
+
+
+def test_only_the_cover_mode_crops(monkeypatch):
+    """Other modes grow anchors from the hidden render's screen-space gradients, which depend on the
+    image size: they render whole views."""
+    monkeypatch.setattr(crop, "MAX_SHARE", 1.0)
+    scene = make_synthetic_scene(hidden="mug", level="object", width=96, height=72, n_train=2, n_test=1, n_points=300)
+    secure = apply_overrides(SecureConfig(payload="object"), {"strategy.mode": "rdo", "hidden_frame": "box",
+                                                              "hidden_offsets": 2, "hidden_width": 8,
+                                                              "hidden_crop": True})
+    t = SecureTrainer(scene, TrainConfig(iterations=4, raster=RasterOptions(tile_size=8)), secure)
+    assert t.model.private.frame == "box" and t._hidden_crop(0, 0) is None

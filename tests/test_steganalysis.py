@@ -115,6 +115,17 @@ def test_box_frame_options_are_in_the_key_and_reveal_rebuilds_them(tmp_path):
     assert any(p.name.startswith("hidden_") for p in (revealed / "renders").iterdir())
 
 
+def test_a_key_written_before_the_encoding_and_depth_rebuilds_the_one_layer_offset_mlp():
+    from securegs_warp.model import ScaffoldHeads
+    from securegs_warp.secure.heads import PrivateHeads
+
+    metadata = PrivateHeads(ScaffoldHeads(8, 2), frame="box", n_hidden=2, width=8).describe()
+    for name in ("encoding", "depth"):
+        metadata.pop(name)
+    private = PrivateHeads(ScaffoldHeads(8, 2), **metadata)
+    assert [m.in_features for m in private.offset_mlp if isinstance(m, torch.nn.Linear)] == [8 + 3, 8]
+
+
 def test_the_box_encoding_holds_octaves_of_the_position():
     from securegs_warp.model import ScaffoldHeads
     from securegs_warp.secure.heads import PrivateHeads

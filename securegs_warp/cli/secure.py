@@ -60,7 +60,7 @@ SECURE_FLAGS = (
                                                   "(default 1024)"),
     ("--hidden-encoding", "secure.hidden_encoding", "box frame: octaves of sines and cosines of the anchor's "
                                                     "position that F_o† reads (default 0: the position alone)"),
-    ("--hidden-depth", "secure.hidden_depth", "box frame: hidden layers of F_o† (default 1)"),
+    ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "
                                                 "image, 1 for a scene); lower keeps the cover closer to plain "
                                                 "Scaffold-GS"),

@@ -54,6 +54,8 @@ def box_crop(camera: Camera, box: np.ndarray, tile: int) -> Crop | None:
     u = K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]
     v = K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]
     margin = MARGIN_PX + MARGIN_SHARE * max(u.max() - u.min(), v.max() - v.min())
+    # On the view's tile grid, the crop's tiles are the view's own: each holds the same pixels and
+    # Gaussians, so the crop does the view's work on those tiles and no more.
     x0 = max(0, math.floor((u.min() - margin) / tile) * tile)
     y0 = max(0, math.floor((v.min() - margin) / tile) * tile)
     x1 = min(camera.width, math.ceil((u.max() + margin) / tile) * tile)

@@ -169,14 +169,16 @@ class SecureTrainer(ScaffoldTrainer):
 
     def _hidden_crop(self, secret: int, view: int) -> Crop | None:
         """The part of training view ``view`` that secret ``secret``'s hidden render is trained on
-        (``SecureConfig.hidden_crop``; box-frame keys of object payloads), or None: the whole view."""
-        private, payload = self.model.secrets[secret], self.payloads[secret]
-        if not (self.secure.hidden_crop and private.frame == "box" and payload.spec.kind == "object"):
+        (``SecureConfig.hidden_crop``: box-frame keys in the cover mode), or None: the whole view.
+        Other modes grow anchors from the hidden render's screen-space gradients, which are scaled by
+        the image's size: they render whole views."""
+        private = self.model.secrets[secret]
+        if not (self.secure.hidden_crop and private.frame == "box" and self.strategy.mode == "cover"):
             return None
-        crops = self._crops[secret].get((private.box,), dict)
-        if view not in crops:  # one host read of the box per view and box
-            crops[view] = box_crop(self.scene.train[view], private.box.detach().cpu().numpy(),
-                                   self.config.raster.tile_size)
+        # One host read of the box while it is unchanged, then each view's crop from it.
+        box, crops = self._crops[secret].get((private.box,), lambda: (private.box.detach().cpu().numpy(), {}))
+        if view not in crops:
+            crops[view] = box_crop(self.scene.train[view], box, self.config.raster.tile_size)
         return crops[view]
 
     @torch.no_grad()
