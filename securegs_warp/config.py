@@ -228,8 +228,8 @@ class SecureConfig:
         MLPs' hidden width and, in the box frame, how many anchors nearest the box decode hidden
         Gaussians. None: the public k and d and every visible anchor in the anchor frame,
         BOX_FRAME_DEFAULTS in the box frame.
-    hidden_crop: in the box frame and the cover mode, train each hidden render on the tile-aligned part of the view
-        that the key's box can reach (``secure.crop``): the rest of an object's hidden view is
+    hidden_crop: in the box frame and the cover mode, train each hidden render on the tile-aligned
+        part of the view that the key's box can reach (``secure.crop``): the rest of an object's hidden view is
         background in the target, and in the render up to the tails of splats near the box's faces,
         which the crop leaves untrained. Off by default: what it saves in time it may cost in hidden
         fidelity (docs/results.md, "the hidden crop").
@@ -268,8 +268,8 @@ class SecureConfig:
 
     def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
-        serving, encoding, depth) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of density ``mode``
-        (``strategy_mode``), with the frame's defaults filled in."""
+        serving, encoding, depth) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
+        density ``mode`` (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else \
             {"n_hidden": None, "width": None, "serving": 0, "encoding": 0, "depth": 1}

@@ -3,9 +3,9 @@
 In the box frame every hidden Gaussian's centre lies in the key's box, and the object payload's
 hidden view shows the object on its background: outside the box's projection both the hidden
 render and its target are background (up to the tails of splats near the box's faces). Training
-renders and scores only a tile-aligned rectangle around that projection, which at 1080p is a small
-share of the view, and weighs the image term by that share, so that each pixel's gradient is what
-the whole view's mean would give it.
+renders and scores only a tile-aligned rectangle around that projection, which can be a fraction of
+the view, and weighs the image term by that share, so that each pixel's gradient is what the whole
+view's mean would give it.
 """
 from __future__ import annotations
 
