@@ -229,10 +229,10 @@ class SecureConfig:
         Gaussians. None: the public k and d and every visible anchor in the anchor frame,
         BOX_FRAME_DEFAULTS in the box frame.
     hidden_crop: in the box frame and the cover mode, train each hidden render on the tile-aligned
-        part of the view that the key's box can reach (``secure.crop``): the rest of an object's hidden view is
-        background in the target, and in the render up to the tails of splats near the box's faces,
-        which the crop leaves untrained. Off by default: what it saves in time it may cost in hidden
-        fidelity (docs/results.md, "the hidden crop").
+        part of the view that the key's box can reach (``secure.crop``): the rest of an object's
+        hidden view is background in the target, and in the render up to the tails of splats near
+        the box's faces, which the crop leaves untrained. Off by default: what it saves in time it
+        may cost in hidden fidelity (docs/results.md, "the hidden crop").
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, 0 and 1 in the anchor frame.
