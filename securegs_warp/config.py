@@ -235,7 +235,7 @@ class SecureConfig:
         may cost in hidden fidelity (docs/results.md, "the hidden crop").
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
-        encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, 0 and 1 in the anchor frame.
+        encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
     """
 
     payload: str = "object+bits:48"
@@ -271,11 +271,11 @@ class SecureConfig:
         serving, encoding, depth) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
         density ``mode`` (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
-        defaults = BOX_FRAME_DEFAULTS if frame == "box" else \
-            {"n_hidden": None, "width": None, "serving": 0, "encoding": 0, "depth": 1}
         given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors,
                  "encoding": self.hidden_encoding, "depth": self.hidden_depth}
-        return {"frame": frame, **{name: defaults[name] if value is None else value for name, value in given.items()}}
+        # The anchor frame leaves what is not given to PrivateHeads' own defaults (the public k and d).
+        defaults = BOX_FRAME_DEFAULTS if frame == "box" else {}
+        return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None}}
 
     def __post_init__(self):
         if self.hidden_frame not in (None, "anchor", "box"):

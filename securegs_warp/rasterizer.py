@@ -37,8 +37,8 @@ class RasterOptions:
     Accuracy for time (scripts/accuracy_vs_time.py measures both):
     fast_math: projection and blending compiled with Warp's fast math (CUDA only; Warp 1.19's
         CPU compiler ignores the option, so on the CPU it changes nothing). On by default because
-        gsplat 1.5 is itself compiled with ``--use_fast_math``; gradients move by up to 6.6e-5
-        (largest absolute difference) against the exact float32 path (docs/results.md, "Packed Gaussian records").
+        gsplat 1.5 is itself compiled with ``--use_fast_math``; gradients move against the exact
+        float32 path by the amounts docs/results.md measures ("Packed Gaussian records").
     color_storage: "float16" blends from a float16 copy of ``colors`` made once per render (half
         the bytes per colour read, for wide feature fields on the GPU; on the CPU each read pays a
         conversion). The image error is at most the colours' float16 rounding (≤ 2⁻¹¹·max|colour|,
@@ -95,9 +95,8 @@ class RasterOptions:
     # per batch where "fields" pays four or five (scripts/kernel_registers.py counts the barriers),
     # for N × 12 float32 words more memory (RGB; 4·⌈(7+C)/4⌉ for C float32 colours, 8 with float16
     # colours) and one more launch. Bit-identical images and gradients on the CPU; on CUDA the
-    # gradients' atomic sums add in a varying order for either gather (packed against fields:
-    # within 6e-6 on an H100);
-    # scripts/bench_rasterizer.py --variant fields:gather=fields compares them. "packed" by default:
+    # gradients' atomic sums add in a varying order for either gather, so the two agree to float
+    # rounding. scripts/bench_rasterizer.py --variant fields:gather=fields compares them. "packed" by default:
     # faster in both blending kernels on an H100 (docs/results.md, "Packed Gaussian records").
     gather: str = "packed"
 
