@@ -236,6 +236,12 @@ class SecureConfig:
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
+    hidden_stride: the hidden renders are made and trained on every hidden_stride-th step only, their
+        loss weighted hidden_stride times, so that the hidden loss's gradient keeps its mean over the
+        run; the steps between are plain Scaffold-GS steps (plus the bit projection). A SecureGS step
+        costs about two Scaffold-GS steps, most of it the per-op host work of the second branch, so
+        this is the knob that trades hidden fidelity for training time (docs/results.md, "hidden
+        stride"). The private heads take one Adam step per hidden step.
     """
 
     payload: str = "object+bits:48"
@@ -255,6 +261,7 @@ class SecureConfig:
     hidden_encoding: int | None = None
     hidden_depth: int | None = None
     hidden_crop: bool = False
+    hidden_stride: int = 1
 
     def strategy_mode(self, kinds) -> str:
         """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):
@@ -280,7 +287,7 @@ class SecureConfig:
     def __post_init__(self):
         if self.hidden_frame not in (None, "anchor", "box"):
             raise ValueError(f"hidden_frame must be 'anchor' or 'box', got {self.hidden_frame!r}")
-        for name in ("hidden_offsets", "hidden_width", "hidden_anchors", "hidden_depth"):
+        for name in ("hidden_offsets", "hidden_width", "hidden_anchors", "hidden_depth", "hidden_stride"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.hidden_encoding is not None and self.hidden_encoding < 0:

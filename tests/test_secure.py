@@ -346,6 +346,37 @@ def test_feature_grad_until_frees_the_public_features(hidden_scene):
     assert feature_grads[2] > 0 and feature_grads[3] == 0
 
 
+def test_hidden_stride_trains_the_hidden_branch_every_nth_step_at_n_times_its_weight(hidden_scene, monkeypatch):
+    """hidden_stride N: the hidden render joins the loss on steps N, 2N, ... only, weighted N·λ; the
+    steps between are public-only, and the private heads get no gradient on them."""
+    config = TrainConfig(iterations=6, raster=CPU_RASTER)
+    with pytest.raises(ValueError, match="hidden_stride must be >= 1"):
+        SecureTrainer(hidden_scene, config, SecureConfig(payload="object", hidden_stride=0))
+    trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="object+bits:16", hidden_stride=3))
+    weights, private_grads = [], []
+    losses = trainer.image_losses
+
+    def recording(renders):
+        weights.append([w for _, _, w in renders])
+        return losses(renders)
+
+    monkeypatch.setattr(trainer, "image_losses", recording)
+    step = trainer.optimizer.step
+
+    def stepping(*args, **kwargs):
+        g = trainer.model.private.offset_mlp[0].weight.grad
+        private_grads.append(g is not None and bool(g.abs().sum() > 0))
+        return step(*args, **kwargs)
+
+    monkeypatch.setattr(trainer.optimizer, "step", stepping)
+    results = [trainer.step() for _ in range(6)]
+    lam = trainer.payload.weight
+    assert weights == [[1.0], [1.0], [1.0, 3 * lam]] * 2
+    assert private_grads == [False, False, True] * 2
+    assert ["psnr_hidden" in r for r in results] == [False, False, True] * 2
+    assert trainer.bit_accuracy() == 1.0  # the bits are projected after every step, hidden or not
+
+
 @pytest.mark.parametrize("growth_at", ["hidden", "public"])
 def test_hidden_anchors_grow_where_the_hidden_gaussians_are(hidden_scene, growth_at):
     """Γ_hid growth proposes anchors at the hidden Gaussians' mean positions (∇_hid's own

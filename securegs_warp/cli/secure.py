@@ -61,6 +61,8 @@ SECURE_FLAGS = (
     ("--hidden-encoding", "secure.hidden_encoding", "box frame: octaves of sines and cosines of the anchor's "
                                                     "position that F_o† reads (default 0: the position alone)"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
+    ("--hidden-stride", "secure.hidden_stride", "train the hidden branch on every N-th step only, its loss weighted "
+                                                "N times (faster training, lower hidden fidelity; default 1)"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "
                                                 "image, 1 for a scene); lower keeps the cover closer to plain "
                                                 "Scaffold-GS"),

@@ -141,6 +141,9 @@ class SecureTrainer(ScaffoldTrainer):
 
     def extra_losses(self, index: int, renders: list, branches: dict, step: int) -> dict:
         extra, hidden = {}, []
+        stride = self.secure.hidden_stride
+        if step % stride:
+            return extra  # a plain step between hidden ones (SecureConfig.hidden_stride)
         # Robust training: this step's hidden renders read randomly attacked anchors (the bits are
         # projected into every anchor after the update, see after_update).
         anchors = perturb(self.model.anchors, self.robust, self.generator,
@@ -159,8 +162,8 @@ class SecureTrainer(ScaffoldTrainer):
             if crop is not None:
                 target, share = target[crop.rows, crop.cols], crop.share
                 out["pixel_share"] = share
-            renders.append((out, target, p.weight))
-            hidden.append((out["gaussians"], out["info"], p.weight))
+            renders.append((out, target, p.weight * stride))
+            hidden.append((out["gaussians"], out["info"], p.weight * stride))
             extra["psnr_hidden" + secret_suffix(secret)] = functools.partial(view_psnr, out["image"].detach(),
                                                                              target, share)
         if hidden:
