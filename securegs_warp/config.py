@@ -238,10 +238,11 @@ class SecureConfig:
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
     hidden_stride: the hidden renders are made and trained on every hidden_stride-th step only, their
         loss weighted hidden_stride times, so that the hidden loss's gradient keeps its mean over the
-        run; the steps between are plain Scaffold-GS steps (plus the bit projection). A SecureGS step
-        costs about two Scaffold-GS steps, most of it the per-op host work of the second branch, so
-        this is the knob that trades hidden fidelity for training time (docs/results.md, "hidden
-        stride"). The private heads take one Adam step per hidden step.
+        run; the steps between are plain Scaffold-GS steps (plus the bit projection). Most of what a
+        SecureGS step adds to a Scaffold-GS step is the per-op host work of the hidden branch, so
+        this is the knob that trades hidden fidelity for training time (docs/results.md, "The hidden
+        stride"). The private heads take one Adam step per hidden step; the RDO mode gathers ∇_hid
+        on the steps that are multiples of both this and its own ``hidden_every``.
     """
 
     payload: str = "object+bits:48"
