@@ -236,8 +236,6 @@ class SecureConfig:
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
-    hidden_encoding_ramp: the fraction of the run over which F_o†'s octaves open one after another,
-        coarse to fine (``PrivateHeads.encoding_window``); 0: all of them from the first step.
     hidden_stride: the hidden renders are made and trained on every hidden_stride-th step only, their
         loss weighted hidden_stride times, so that the hidden loss's gradient keeps its mean over the
         run; the steps between are plain Scaffold-GS steps (plus the bit projection). Most of what a
@@ -265,7 +263,6 @@ class SecureConfig:
     hidden_depth: int | None = None
     hidden_crop: bool = False
     hidden_stride: int = 1
-    hidden_encoding_ramp: float = 0.0
 
     def strategy_mode(self, kinds) -> str:
         """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):
@@ -303,7 +300,6 @@ class SecureConfig:
         if not self.bit_cell_voxels > 0.0:
             raise ValueError(f"bit_cell_voxels must be > 0, got {self.bit_cell_voxels}")
         for name, meaning in (("hidden_feature_grad", "a share of a gradient"),
-                              ("hidden_encoding_ramp", "a fraction of the run"),
                               ("hidden_scaling_grad", "a share of a gradient"),
                               ("feature_grad_until", "a fraction of the run")):
             if not 0.0 <= getattr(self, name) <= 1.0:

@@ -142,51 +142,6 @@ def test_the_box_encoding_holds_octaves_of_the_position():
         PrivateHeads(ScaffoldHeads(8, 2), encoding=2)
 
 
-def test_the_encoding_window_opens_the_octaves_coarse_to_fine():
-    from securegs_warp.model import ScaffoldHeads
-    from securegs_warp.secure.heads import PrivateHeads
-
-    private = PrivateHeads(ScaffoldHeads(8, 2), frame="box", n_hidden=2, width=8, encoding=3)
-    where = torch.tensor([[0.3, -0.6, 0.1]])
-    full = private.encode(where)
-    octave = lambda code, level: torch.cat([code[0, 3 + 3 * level: 6 + 3 * level],  # noqa: E731
-                                            code[0, 12 + 3 * level: 15 + 3 * level]])
-    for window, weights in ((0.0, (0.0, 0.0, 0.0)), (0.5, (0.5, 0.0, 0.0)), (1.0, (1.0, 0.0, 0.0)),
-                            (2.5, (1.0, 1.0, 0.5)), (3.0, (1.0, 1.0, 1.0))):
-        private.encoding_window = window
-        code = private.encode(where)
-        assert torch.equal(code[0, :3], where[0])  # the position itself is always read
-        for level, weight in enumerate(weights):
-            torch.testing.assert_close(octave(code, level), weight * octave(full, level))
-
-
-def test_the_trainer_ramps_the_window_over_its_share_of_the_run(monkeypatch):
-    from securegs_warp.config import SecureConfig
-    from securegs_warp.data import make_synthetic_scene
-    from securegs_warp.rasterizer import RasterOptions
-    from securegs_warp.secure import SecureTrainer
-    from securegs_warp.secure.heads import PrivateHeads
-    from securegs_warp.train import TrainConfig
-
-    with pytest.raises(ValueError, match=r"hidden_encoding_ramp must lie in \[0, 1\]"):
-        SecureConfig(hidden_encoding_ramp=1.5)
-    scene = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=2, n_test=1, n_points=400)
-    secure = SecureConfig(payload="object", hidden_encoding=4, hidden_encoding_ramp=0.5, hidden_offsets=2,
-                          hidden_width=8, hidden_anchors=40)
-    trainer = SecureTrainer(scene, TrainConfig(iterations=8, raster=RasterOptions(tile_size=8)), secure)
-    windows, encode = [], PrivateHeads.encode
-
-    def recording(self, where):
-        windows.append(self.encoding_window)
-        return encode(self, where)
-
-    monkeypatch.setattr(PrivateHeads, "encode", recording)
-    for _ in range(8):
-        trainer.step()
-    assert windows == pytest.approx([1.0, 2.0, 3.0, 4.0, 4.0, 4.0, 4.0, 4.0])  # 4 octaves over 4 of 8 steps
-    assert trainer.model.private.encoding_window is None  # evaluation and reveal read every octave
-
-
 def test_serving_is_a_count_inside_the_box_and_its_radius_lies_between_anchors():
     from securegs_warp.model import ScaffoldHeads
     from securegs_warp.secure.heads import PrivateHeads

@@ -80,10 +80,6 @@ class PrivateHeads(nn.Module):
         self.feat_dim, self.n_offsets, self.scale_offsets = d, k, scale_offsets
         self.frame, self.width, self.serving = frame, w, int(serving)
         self.encoding, self.depth = int(encoding), int(depth)
-        # Training may open the octaves one by one (coarse to fine, as windowed positional encodings
-        # do): octave l is weighted by (1 − cos(π·clamp(window − l, 0, 1))) / 2. None: all open, as
-        # every decode outside training reads them.
-        self.encoding_window: float | None = None
         self.decoder = ScaffoldHeads(d, k, use_feat_bank=public.use_feat_bank,
                                      add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
                                      add_color_dist=public.add_color_dist, width=w) if hidden else None
@@ -121,13 +117,8 @@ class PrivateHeads(nn.Module):
         """[N, 3(1 + 2L)]: box positions [N, 3] and their L octaves of sines and cosines."""
         if not self.encoding:
             return where
-        octaves = torch.arange(self.encoding, device=where.device)
-        angles = where[:, None, :] * (math.pi * 2.0 ** octaves)[None, :, None]
-        sin, cos = torch.sin(angles), torch.cos(angles)
-        if self.encoding_window is not None and self.encoding_window < self.encoding:
-            weight = (1.0 - torch.cos(math.pi * (self.encoding_window - octaves).clamp(0.0, 1.0))) / 2.0
-            sin, cos = sin * weight[None, :, None], cos * weight[None, :, None]
-        return torch.cat([where, sin.flatten(1), cos.flatten(1)], dim=1)
+        angles = where[:, None, :] * (math.pi * 2.0 ** torch.arange(self.encoding, device=where.device))[None, :, None]
+        return torch.cat([where, torch.sin(angles).flatten(1), torch.cos(angles).flatten(1)], dim=1)
 
     def set_box(self, lo, hi) -> None:
         """The box frame's region: corners ``lo``, ``hi`` [3] in world units."""

@@ -144,8 +144,6 @@ class SecureTrainer(ScaffoldTrainer):
         stride = self.secure.hidden_stride
         if step % stride:
             return extra  # a plain step between hidden ones (SecureConfig.hidden_stride)
-        ramp = self.secure.hidden_encoding_ramp * self.config.iterations
-        opened = min(1.0, step / ramp) if ramp > 0 else None  # the share of F_o†'s octaves open this step
         # Robust training: this step's hidden renders read randomly attacked anchors (the bits are
         # projected into every anchor after the update, see after_update).
         anchors = perturb(self.model.anchors, self.robust, self.generator,
@@ -157,13 +155,8 @@ class SecureTrainer(ScaffoldTrainer):
             # Same view and same anchors as the public render: its visibility test holds as it is.
             visible = branches["public"][0]["visible_mask"] if view == index and anchors is None else None
             crop = self._hidden_crop(secret, view)
-            private = self.model.secrets[secret]
-            private.encoding_window = None if opened is None else opened * private.encoding
-            try:
-                out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
-                                         step=step, anchors=anchors, secret=secret, visible=visible)
-            finally:  # every other decode (evaluation, reveal) reads all the octaves
-                private.encoding_window = None
+            out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
+                                     step=step, anchors=anchors, secret=secret, visible=visible)
             target = p.views[view] if p.views is not None else p.image
             share = 1.0
             if crop is not None:
