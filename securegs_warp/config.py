@@ -186,7 +186,7 @@ class StegaNeRFConfig:
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
 # the hidden object (the key keeps the radius that takes them in), through MLPs `width` wide
 # (docs/results.md, "Geometric security", measures them).
-BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 0, "depth": 1}
+BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -377,6 +377,22 @@ def test_hidden_stride_trains_the_hidden_branch_every_nth_step_at_n_times_its_we
     assert trainer.bit_accuracy() == 1.0  # the bits are projected after every step, hidden or not
 
 
+def test_a_checkpoint_whose_private_heads_have_other_shapes_is_refused_by_name(hidden_scene, tmp_path, monkeypatch):
+    """The same config can mean other private-head shapes across versions (a default changed): resuming
+    names the first tensor whose shape differs instead of failing inside load_state_dict."""
+    from securegs_warp.config import BOX_FRAME_DEFAULTS
+
+    config = TrainConfig(iterations=4, raster=CPU_RASTER)
+    secure = SecureConfig(payload="object", hidden_offsets=2, hidden_width=8, hidden_anchors=40)
+    monkeypatch.setitem(BOX_FRAME_DEFAULTS, "encoding", 0)  # the default before it became 6
+    old = SecureTrainer(hidden_scene, config, secure)
+    old.step()
+    old.save_checkpoint(tmp_path / "run.pt")
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match=r"run\.pt: the checkpoint's private heads have other shapes.*offset_mlp"):
+        SecureTrainer(hidden_scene, config, secure).load_checkpoint(tmp_path / "run.pt")
+
+
 @pytest.mark.parametrize("growth_at", ["hidden", "public"])
 def test_hidden_anchors_grow_where_the_hidden_gaussians_are(hidden_scene, growth_at):
     """Γ_hid growth proposes anchors at the hidden Gaussians' mean positions (∇_hid's own

@@ -59,7 +59,7 @@ SECURE_FLAGS = (
     ("--hidden-anchors", "secure.hidden_anchors", "box frame: how many anchors nearest the object decode it "
                                                   "(default 1024)"),
     ("--hidden-encoding", "secure.hidden_encoding", "box frame: octaves of sines and cosines of the anchor's "
-                                                    "position that F_o† reads (default 0: the position alone)"),
+                                                    "position that F_o† reads (default 6; 0: the position alone)"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-stride", "secure.hidden_stride", "train the hidden branch on every N-th step only, its loss weighted "
                                                 "N times (faster training, lower hidden fidelity; default 1)"),
