@@ -286,13 +286,13 @@ class SecureTrainer(ScaffoldTrainer):
                 raise ValueError(f"{path}: the checkpoint's private heads hold other tensors than this version's "
                                  f"({', '.join(sorted(set(saved) ^ set(private.state_dict())))}; written by an "
                                  "earlier securegs-warp); start the run again")
-            shapes = {name: (tuple(saved[name].shape), tuple(t.shape)) for name, t in private.state_dict().items()
-                      if tuple(saved[name].shape) != tuple(t.shape)}
-            if shapes:
-                name, (theirs, ours) = next(iter(shapes.items()))
-                raise ValueError(f"{path}: the checkpoint's private heads have other shapes than this run's ({name}: "
-                                 f"{theirs} against {ours}); it was written with other private-head options (or "
-                                 "defaults: --hidden-encoding was 0 before it defaulted to 6): resume with those")
+            differing = next((name for name, t in private.state_dict().items() if saved[name].shape != t.shape), None)
+            if differing is not None:
+                raise ValueError(f"{path}: the checkpoint's private heads have other shapes than this run's "
+                                 f"({differing}: {tuple(saved[differing].shape)} against "
+                                 f"{tuple(private.state_dict()[differing].shape)}); it was written with other "
+                                 "private-head options (or defaults: --hidden-encoding was 0 before it defaulted to "
+                                 "6): resume with those")
             private.load_state_dict(saved)
             if p.bits is not None:
                 p.bits = message.to(self.device)
