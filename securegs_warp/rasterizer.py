@@ -426,7 +426,7 @@ class RenderPlan:
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
-        return _Scope(self.device, self.out["image"].device)
+        return WarpScope(self.device, self.out["image"].device)
 
     def project_and_count(self) -> None:
         """Projection and the per-Gaussian tile counts with their inclusive prefix sum:
@@ -507,7 +507,7 @@ def blend_kernels_for(opts: RasterOptions, channels: int, with_depth: bool, coop
                          opts.backward_walk == "warp", opts.backward_max_registers, packed=packed)
 
 
-class _Scope:
+class WarpScope:
     """``with``: Warp's device and (on CUDA) torch's current stream."""
 
     def __init__(self, device, torch_device: torch.device):

@@ -10,7 +10,7 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import load_scaffold
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, photometric_loss, psnr, ssim
-from securegs_warp.train.losses import batch_photometric_loss
+from securegs_warp.train.losses import batch_photometric_loss, batch_ssim
 from securegs_warp.train.base import nonfinite_gradient_counts
 from securegs_warp.render import camera_tensors
 
@@ -62,6 +62,31 @@ def test_separable_ssim_is_the_2d_one(shape):
     value.backward()
     ref.backward()
     assert float((a.grad.double() - a64.grad).abs().max()) < 1e-4 * float(a64.grad.abs().max())
+
+
+def test_batch_ssim_gradient_is_each_image_s_2d_one():
+    # Images of one batch are blurred apart (no window reaches across the image boundary) and each
+    # gets its own share of the upstream gradient.
+    g = torch.Generator().manual_seed(5)
+    a = torch.rand(2, 13, 21, 4, generator=g, requires_grad=True)
+    b = (a.detach() + 0.3 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    weights = torch.tensor([0.3, -1.7])
+    (batch_ssim(a, b) * weights).sum().backward()
+    for i in range(2):
+        a64 = a[i].detach().double().requires_grad_(True)
+        (float(weights[i]) * ssim_2d_float64(a64, b[i])).backward()
+        assert float((a.grad[i].double() - a64.grad).abs().max()) < 1e-4 * float(a64.grad.abs().max())
+    with pytest.raises(ValueError, match="targets detached"):
+        batch_ssim(a, b.clone().requires_grad_(True))
+
+
+@pytest.mark.parametrize("value", [0.0, 1.0])
+def test_ssim_of_flat_images_is_one_with_a_finite_gradient(value):
+    # Zero variance everywhere: only C1 and C2 keep the quotient defined.
+    a = torch.full((12, 16, 3), value, requires_grad=True)
+    s = ssim(a, torch.full((12, 16, 3), value))
+    s.backward()
+    assert abs(float(s) - 1.0) < 1e-6 and bool(torch.isfinite(a.grad).all())
 
 
 def test_schedule_scales_with_run_length():

@@ -6,31 +6,79 @@ import functools
 import math
 
 import torch
-import torch.nn.functional as F
+import warp as wp
 
-SSIM_WINDOW = 11
+from ..kernels import ssim as ssim_kernels
+from ..rasterizer import WarpScope
+
+SSIM_WINDOW = ssim_kernels.WINDOW
 SSIM_SIGMA = 1.5
+SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2
 
 
 @functools.lru_cache(maxsize=8)
-def _gaussian_window(channels: int, device: torch.device) -> torch.Tensor:
-    """[channels, 1, 11] 1-D Gaussian window (σ 1.5, sums to 1), one row per channel: 3DGS's 11×11
-    window is its outer product with itself, so two 1-D passes give the same blur."""
+def _gaussian_window(device: torch.device) -> torch.Tensor:
+    """[11] 1-D Gaussian window (σ 1.5, sums to 1): 3DGS's 11×11 window is its outer product with
+    itself, so a row pass and a column pass give the same blur."""
     x = torch.arange(SSIM_WINDOW, dtype=torch.float32) - SSIM_WINDOW // 2
     g = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
-    g = g / g.sum()
-    return g.expand(channels, 1, SSIM_WINDOW).contiguous().to(device)
+    return (g / g.sum()).to(device)
 
 
-def _blur(x: torch.Tensor) -> torch.Tensor:
-    """Each channel of x [B, K, H, W] convolved with the 11×11 Gaussian window, zero padded: a row
-    pass then a column pass (22 taps a pixel instead of 121; with zero padding the separable blur
-    is the 2-D one exactly, up to float rounding)."""
-    k = x.shape[1]
-    g = _gaussian_window(k, x.device)
-    pad = SSIM_WINDOW // 2
-    x = F.conv2d(x, g[:, :, None, :], padding=(0, pad), groups=k)
-    return F.conv2d(x, g[:, :, :, None], padding=(pad, 0), groups=k)
+class _BatchSSIM(torch.autograd.Function):
+    """[B] mean SSIM of [B, H, W, C] images against targets, by the Warp kernels of
+    ``securegs_warp.kernels.ssim``; the gradient reaches the images only. Written as kernels because
+    torch's grouped convolutions (cuDNN's depthwise kernels, handed the rasterizer's channels-last
+    images) made the loss the largest part of a 1080p training step on the GPU; these read the
+    rasterizer's layout as it is, and keep what the backward needs from the forward. On the CPU,
+    where Warp runs one thread, they are slower than torch's convolutions (docs/results.md)."""
+
+    @staticmethod
+    def forward(ctx, images: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+        wp.init()  # idempotent; Warp must be up before its devices can be named
+        a, b = images.detach().float().contiguous(), targets.detach().float().contiguous()
+        n, h, w, c = a.shape
+        window = _gaussian_window(a.device)
+        rows = torch.empty((a.numel(), 5), dtype=torch.float32, device=a.device)
+        ssim_map = torch.empty_like(a)
+        with_partials = ctx.needs_input_grad[0]
+        partials = torch.empty((a.numel(), 3) if with_partials else (1, 3), dtype=torch.float32, device=a.device)
+        dims = (n * h, w, c)
+        with WarpScope(wp.device_from_torch(a.device), a.device):
+            flat_a, flat_b, flat_window = _flat(a), _flat(b), _flat(window)
+            wp.launch(ssim_kernels.blur_rows_of_stats, dim=dims,
+                      inputs=[flat_a, flat_b, flat_window, w, c], outputs=[wp.from_torch(rows, dtype=ssim_kernels.vec5)])
+            wp.launch(ssim_kernels.ssim_columns, dim=dims,
+                      inputs=[wp.from_torch(rows, dtype=ssim_kernels.vec5), flat_window, h, w, c, SSIM_C1, SSIM_C2,
+                              int(with_partials)],
+                      outputs=[_flat(ssim_map), wp.from_torch(partials, dtype=wp.vec3)])
+        if with_partials:
+            ctx.save_for_backward(a, b, partials)
+        return ssim_map.mean(dim=(1, 2, 3))
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        a, b, partials = ctx.saved_tensors
+        n, h, w, c = a.shape
+        scale = (grad_out.float() / (h * w * c)).contiguous()
+        rows = torch.empty_like(partials)
+        grad = torch.empty_like(a)
+        dims = (n * h, w, c)
+        with WarpScope(wp.device_from_torch(a.device), a.device):
+            flat_window = _flat(_gaussian_window(a.device))
+            wp.launch(ssim_kernels.blur_rows_of_partials, dim=dims,
+                      inputs=[wp.from_torch(partials, dtype=wp.vec3), flat_window, w, c],
+                      outputs=[wp.from_torch(rows, dtype=wp.vec3)])
+            wp.launch(ssim_kernels.ssim_image_gradient, dim=dims,
+                      inputs=[wp.from_torch(rows, dtype=wp.vec3), _flat(a), _flat(b), flat_window, _flat(scale),
+                              h, w, c],
+                      outputs=[_flat(grad)])
+        return grad, None
+
+
+def _flat(t: torch.Tensor):
+    """Warp float view of a contiguous float32 tensor, flattened."""
+    return wp.from_torch(t.view(-1), dtype=wp.float32)
 
 
 def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -46,17 +94,9 @@ def batch_ssim(images: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     if images.shape != targets.shape or images.ndim != 4:
         raise ValueError(f"batch_ssim needs two [B, H, W, C] batches of one shape, got {list(images.shape)}, "
                          f"{list(targets.shape)}")
-    c = images.shape[-1]
-    a = images.permute(0, 3, 1, 2)
-    b = targets.permute(0, 3, 1, 2)
-    # The five local statistics in one blur: [B, 5C, H, W] → means, second moments.
-    mu_a, mu_b, aa, bb, ab = _blur(torch.cat([a, b, a * a, b * b, a * b], dim=1)).split(c, dim=1)
-    var_a = aa - mu_a**2
-    var_b = bb - mu_b**2
-    cov = ab - mu_a * mu_b
-    c1, c2 = 0.01**2, 0.03**2
-    ssim_map = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
-    return ssim_map.mean(dim=(1, 2, 3))
+    if targets.requires_grad and torch.is_grad_enabled():
+        raise ValueError("batch_ssim's gradient reaches the images only: pass the targets detached")
+    return _BatchSSIM.apply(images, targets)
 
 
 def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
