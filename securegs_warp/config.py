@@ -24,6 +24,7 @@ import math
 import typing
 from pathlib import Path
 
+from .data.meshes import UP_AXES
 from .rasterizer import RasterOptions
 from .strategies import RegionAwareStrategy
 
@@ -353,7 +354,9 @@ class SceneSpec:
     an absolute path, so a run can be evaluated from another working directory).
     width, height, n_train, n_test, seed: synthetic scenes only. hidden, level: what the synthetic
     scene renders as hidden views (an object or scene name, a mesh file), and whether a hidden
-    object stands alone ("object") or inside the scene ("scene"). downscale: real data only.
+    object stands alone ("object") or inside the scene ("scene"); hidden_position, hidden_size,
+    hidden_yaw, hidden_up (a mesh file's up axis), hidden_placement: where and how it stands
+    (``make_synthetic_scene``). downscale: real data only.
     """
 
     source: str = "synthetic"
@@ -367,6 +370,7 @@ class SceneSpec:
     hidden_position: tuple | None = None
     hidden_size: float = 1.2
     hidden_yaw: float = 0.0
+    hidden_up: str = "z"
     hidden_placement: str = "stand"
     downscale: int = 1
 
@@ -378,6 +382,9 @@ class SceneSpec:
             raise ValueError(f"hidden_position must be x,y,z, got {self.hidden_position}")
         if not self.hidden_size > 0:
             raise ValueError(f"hidden_size must be > 0, got {self.hidden_size}")
+        if self.hidden_up not in UP_AXES:
+            raise ValueError(f"hidden_up must be one of {', '.join(UP_AXES)} (a mesh file's up axis), "
+                             f"got {self.hidden_up!r}")
         if Path(self.source).is_dir() and not Path(self.source).is_absolute():
             object.__setattr__(self, "source", str(Path(self.source).resolve()))
 
@@ -393,7 +400,8 @@ class SceneSpec:
             return load_scene(self.source, hidden=self.hidden, level=self.level, width=self.width,
                               height=self.height, n_train=self.n_train, n_test=self.n_test, seed=self.seed,
                               hidden_position=self.hidden_position, hidden_size=self.hidden_size,
-                              hidden_yaw=self.hidden_yaw, hidden_placement=self.hidden_placement)
+                              hidden_yaw=self.hidden_yaw, hidden_up=self.hidden_up,
+                              hidden_placement=self.hidden_placement)
         return load_scene(self.source, downscale=self.downscale)
 
 

@@ -154,6 +154,14 @@ def test_user_mesh_and_placement(tmp_path):
     np.testing.assert_allclose(high - low, [0.4, 0.4, 0.8], atol=1e-6)
     np.testing.assert_allclose([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2]], [1.0, -0.5, 0.2], atol=1e-6)
     assert sum(c.hidden_alpha.mean() > 0 for c in scene.cameras) >= 8
+    # The same file read as y-up (glTF's axis, many OBJ exporters'): its y side now stands along +z.
+    upright = make_synthetic_scene(hidden=str(tmp_path / "tetra.obj"), hidden_position=(1.0, -0.5, 0.2),
+                                   hidden_size=0.8, hidden_up="y", **SMALL)
+    low, high = upright.hidden_bbox
+    np.testing.assert_allclose(high - low, [0.4, 0.8, 0.4], atol=1e-6)
+    np.testing.assert_allclose([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2]], [1.0, -0.5, 0.2], atol=1e-6)
+    with pytest.raises(DataError, match="up axis must be one of z, y, not 'x'"):
+        make_synthetic_scene(hidden=str(tmp_path / "tetra.obj"), hidden_up="x", **SMALL)
 
 
 def test_bad_arguments():

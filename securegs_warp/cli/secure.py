@@ -45,6 +45,8 @@ SECURE_FLAGS = (
                                                    "(world units; the room is 10 wide); replaces --placement"),
     ("--hidden-size", "scene.hidden_size", "synthetic scenes: the hidden object's largest side (world units)"),
     ("--hidden-yaw", "scene.hidden_yaw", "synthetic scenes: the hidden object's turn about the vertical, degrees"),
+    ("--hidden-up", "scene.hidden_up", "synthetic scenes: a mesh file's up axis, z (the default) or y (glTF, many "
+                                       "OBJ exporters and scans)"),
     ("--mode", "secure.strategy.mode", "density strategy: cover (the cover's own anchors decode the hidden "
                                        "object: no anchor grows for it; the default when a secret hides an "
                                        "object, for every secret of the run), rdo (the paper's; the default "

@@ -18,6 +18,7 @@ from ..kernels.raycast import TEXTURES
 from .errors import DataError
 
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb")
+UP_AXES = ("z", "y")  # a mesh file's up axis (load_mesh)
 
 
 @dataclass(frozen=True)
@@ -308,15 +309,19 @@ def robot() -> TriMesh:
 HIDDEN_OBJECTS = {"mug": mug, "lamp": lamp, "pawn": pawn, "robot": robot}
 
 
-def load_mesh(path, material: Material | None = None) -> TriMesh:
+def load_mesh(path, material: Material | None = None, up: str = "z") -> TriMesh:
     """Read a user's mesh file (OBJ, PLY, OFF, STL or GLB, through trimesh), normalised (see
     :func:`normalized`). Vertex or face colours, or a texture baked to vertex colours, are kept
     when the file has them and no `material` is given; otherwise `material` (default: grey noise)
-    textures it. Raises DataError naming the file when it is missing, of an unsupported type,
-    unreadable, or holds no triangles.
+    textures it. up: the file's up axis (UP_AXES), turned onto the scenes' +z: none of these formats
+    records it, and glTF and many OBJ exporters (and scanned meshes such as the Stanford bunny)
+    use +y. Raises DataError naming the file when it is missing, of an unsupported type,
+    unreadable, or holds no triangles, or naming an unknown up axis.
     """
     import trimesh
 
+    if up not in UP_AXES:
+        raise DataError(f"a mesh's up axis must be one of {', '.join(UP_AXES)}, not {up!r}")
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: mesh file not found")
@@ -345,7 +350,7 @@ def load_mesh(path, material: Material | None = None) -> TriMesh:
         face_material=np.zeros(len(loaded.faces), dtype=np.int32),
         materials=[Material("vertex")] if colors is not None else [material],
     )
-    normalized_mesh = normalized(mesh)
+    normalized_mesh = normalized(mesh if up == "z" else mesh.transformed(rotation_x(90.0)))  # +y onto +z
     # Texture coordinates in the normalised frame, so a noise material's scale means the same for
     # every file whatever its units.
     normalized_mesh.uvw = normalized_mesh.vertices.copy()

@@ -264,7 +264,7 @@ def _place_object(mesh: TriMesh, layout: Layout, position, size: float, yaw: flo
 
 
 def _hidden_payload(hidden, level: str, scene_name: str, layout: Layout, lighting: Lighting, seed: int,
-                    position, size: float, yaw: float, placement: str, background) -> _Payload:
+                    position, size: float, yaw: float, up: str, placement: str, background) -> _Payload:
     """Resolve make_synthetic_scene's `hidden` argument (see there) into a _Payload."""
     if isinstance(hidden, str) and (hidden == "scene" or SCENE_ALIASES.get(hidden, hidden) in SCENES):
         other = "garden" if scene_name == "room" else "room"
@@ -276,7 +276,7 @@ def _hidden_payload(hidden, level: str, scene_name: str, layout: Layout, lightin
     elif hidden in HIDDEN_OBJECTS:
         name, mesh = hidden, HIDDEN_OBJECTS[hidden]()
     elif Path(hidden).suffix.lower() in MESH_SUFFIXES:
-        name, mesh = Path(hidden).stem, load_mesh(hidden)
+        name, mesh = Path(hidden).stem, load_mesh(hidden, up=up)
     else:
         raise DataError(
             f"unknown hidden payload {hidden!r}: use one of the objects {sorted(HIDDEN_OBJECTS)}, 'scene' or a scene "
@@ -330,6 +330,7 @@ def make_synthetic_scene(
     hidden_position=None,
     hidden_size: float = 1.2,
     hidden_yaw: float = 0.0,
+    hidden_up: str = "z",
     hidden_placement: str = "stand",
     hidden_background=(1.0, 1.0, 1.0),
     n_points: int = 4000,
@@ -348,7 +349,7 @@ def make_synthetic_scene(
     into the scene). hidden_position: world position of the object's bottom centre (default: sunk
     on the scene's central object as hidden_placement says: "stand", "sink" or "float", see
     PLACEMENTS); hidden_size: its largest side in world units (the room is 10 wide); hidden_yaw:
-    degrees about z.
+    degrees about z; hidden_up: a mesh file's up axis, "z" or "y" (see ``load_mesh``).
     width, height: image size; n_train views on a hemisphere band around the centre, n_test on a
     ring within the band. n_points noisy points (std point_noise) sampled from surfaces the
     training views see. supersample**2 rays per pixel. shadows: cast hard shadows. device: the Warp
@@ -393,7 +394,7 @@ def make_synthetic_scene(
     if hidden is None:
         return scene
     payload = _hidden_payload(hidden, level, scene_name, layout, lighting, seed, hidden_position, hidden_size,
-                              hidden_yaw, hidden_placement, hidden_background)
+                              hidden_yaw, hidden_up, hidden_placement, hidden_background)
     hidden_renderer = MeshRenderer(payload.rendered, device)
     for camera in train + test:
         view = hidden_renderer.render(camera, payload.lighting, payload.background, supersample)
