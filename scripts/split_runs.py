@@ -1,9 +1,9 @@
 """Score SecureGS runs trained in other processes than their baseline (``secure_vs_baseline.py
 --no-baseline``) against the baseline's run of the same scene, seed and budget.
 
-Each argument is a ``secure_vs_baseline.py --out`` folder (a baseline's among the containers gives
-the measures' own spread between seeds: a plain model against another) (its ``secure_vs_baseline.json`` and
-``anchor_clouds.npz``). Prints, per model of the containers: cover PSNR against the baseline's, hidden
+Each argument is a ``secure_vs_baseline.py --out`` folder (its ``secure_vs_baseline.json`` and
+``anchor_clouds.npz``); a baseline's folder among the containers gives the measures' own spread
+between seeds (a plain model against another). Prints, per model of the containers: cover PSNR against the baseline's, hidden
 PSNR / SSIM, bits, release size against the baseline's, density ratio and coverage (the geometric
 security measures, r = 3% of the hidden object's bounding-box diagonal) and the reference-free audit
 score, with how far the audit's suspicious box lies from the hidden object's box (0: they touch).
@@ -23,10 +23,14 @@ from securegs_warp.secure.security import exposure, plot_anchor_clouds
 
 
 def load(folder: Path) -> tuple[dict, dict]:
-    """(rows by model label, arrays of anchor_clouds.npz) of one secure_vs_baseline.py folder."""
-    report = json.loads((folder / "secure_vs_baseline.json").read_text())
-    with np.load(folder / "anchor_clouds.npz", allow_pickle=False) as arrays:  # no pickled objects
-        return report["rows"], {name: arrays[name] for name in arrays.files}
+    """(the report of secure_vs_baseline.json, the arrays of anchor_clouds.npz) of one folder;
+    SystemExit naming what is missing."""
+    try:
+        report = json.loads((folder / "secure_vs_baseline.json").read_text())
+        with np.load(folder / "anchor_clouds.npz", allow_pickle=False) as arrays:  # no pickled objects
+            return report, {name: arrays[name] for name in arrays.files}
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"{folder}: not a secure_vs_baseline.py output folder ({e})") from None
 
 
 def box_gap(box, points: np.ndarray) -> float:
@@ -42,11 +46,12 @@ def main():
     ap.add_argument("containers", type=Path, nargs="+", help="folders of the SecureGS runs")
     ap.add_argument("--png", type=Path, help="draw the anchor clouds (baseline, then each container) here")
     args = ap.parse_args()
-    rows, arrays = load(args.baseline)
+    report, arrays = load(args.baseline)
+    rows = report["rows"]
     if BASELINE not in rows:
         ap.error(f"{args.baseline}: holds no {BASELINE!r} row")
     hidden, scene = arrays["hidden_points"], arrays["scene_points"]
-    radius = 0.03 * float(np.linalg.norm(np.ptp(hidden, axis=0)))
+    radius = report["meta"]["exposure_radius"]  # the one secure_vs_baseline.py measured with
     base = rows[BASELINE]
     base_exposure = exposure(arrays[BASELINE], hidden, scene, radius)
     clouds = {BASELINE: arrays[BASELINE]}
@@ -55,10 +60,10 @@ def main():
     print("|---" * 11 + "|")
     base_audit = steganalysis.audit({"xyz": arrays[BASELINE]})
     for folder in args.containers:
-        their_rows, their_arrays = load(folder)
+        their_report, their_arrays = load(folder)
         if not np.array_equal(their_arrays["hidden_points"], hidden):
             ap.error(f"{folder}: another hidden object than the baseline's (another scene or mesh)")
-        for label, row in their_rows.items():
+        for label, row in their_report["rows"].items():
             xyz = their_arrays[label]
             exposed = exposure(xyz, hidden, scene, radius)
             audit = steganalysis.audit({"xyz": xyz})
