@@ -21,8 +21,9 @@ from .rasterizer import rasterize
 
 IMAGE_TOL = 1e-4
 GRAD_TOL = 1e-3
-# The device ``rasterize`` runs on in these comparisons: the CPU, or CUDA on a GPU machine
-# (SECUREGS_TEST_DEVICE=cuda pytest tests/test_rasterizer.py); the reference always runs on the CPU.
+# The device ``rasterize`` (and the SSIM kernels, tests/test_train.py) run on in these comparisons: the
+# CPU, or CUDA on a GPU machine (SECUREGS_TEST_DEVICE=cuda pytest tests/test_rasterizer.py
+# tests/test_train.py -k ssim); the reference always runs on the CPU.
 TEST_DEVICE = os.environ.get("SECUREGS_TEST_DEVICE", "cpu")
 DIFF_INPUTS = ("means", "quats", "scales", "opacities", "colors", "background")
 

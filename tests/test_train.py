@@ -8,6 +8,7 @@ import torch
 from securegs_warp.cli import main
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import load_scaffold
+from securegs_warp.raster_cases import TEST_DEVICE
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, photometric_loss, psnr, ssim
 from securegs_warp.train.losses import batch_photometric_loss, batch_ssim
@@ -53,29 +54,29 @@ def ssim_2d_float64(image, target):
 @pytest.mark.parametrize("shape", [(20, 24, 3), (9, 33, 1), (31, 17, 4)])
 def test_separable_ssim_is_the_2d_one(shape):
     g = torch.Generator().manual_seed(len(shape) + shape[0])
-    a = torch.rand(shape, generator=g, requires_grad=True)
-    b = (a.detach() + 0.2 * torch.randn(shape, generator=g)).clamp(0, 1)
-    a64 = a.detach().double().requires_grad_(True)
-    value, ref = ssim(a, b), ssim_2d_float64(a64, b)
+    a = torch.rand(shape, generator=g).to(TEST_DEVICE).requires_grad_(True)
+    b = (a.detach().cpu() + 0.2 * torch.randn(shape, generator=g)).clamp(0, 1)
+    a64 = a.detach().cpu().double().requires_grad_(True)
+    value, ref = ssim(a, b.to(TEST_DEVICE)), ssim_2d_float64(a64, b)
     # float32 rounding only (measured ~2e-8 on the value, ~1e-6 relative on the gradient).
     assert abs(float(value.detach()) - float(ref.detach())) < 1e-6
     value.backward()
     ref.backward()
-    assert float((a.grad.double() - a64.grad).abs().max()) < 1e-4 * float(a64.grad.abs().max())
+    assert float((a.grad.cpu().double() - a64.grad).abs().max()) < 1e-4 * float(a64.grad.abs().max())
 
 
 def test_batch_ssim_gradient_is_each_image_s_2d_one():
     # Images of one batch are blurred apart (no window reaches across the image boundary) and each
     # gets its own share of the upstream gradient.
     g = torch.Generator().manual_seed(5)
-    a = torch.rand(2, 13, 21, 4, generator=g, requires_grad=True)
-    b = (a.detach() + 0.3 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    a = torch.rand(2, 13, 21, 4, generator=g).to(TEST_DEVICE).requires_grad_(True)
+    b = (a.detach().cpu() + 0.3 * torch.randn(a.shape, generator=g)).clamp(0, 1)
     weights = torch.tensor([0.3, -1.7])
-    (batch_ssim(a, b) * weights).sum().backward()
+    (batch_ssim(a, b.to(TEST_DEVICE)) * weights.to(TEST_DEVICE)).sum().backward()
     for i in range(2):
-        a64 = a[i].detach().double().requires_grad_(True)
+        a64 = a[i].detach().cpu().double().requires_grad_(True)
         (float(weights[i]) * ssim_2d_float64(a64, b[i])).backward()
-        assert float((a.grad[i].double() - a64.grad).abs().max()) < 1e-4 * float(a64.grad.abs().max())
+        assert float((a.grad[i].cpu().double() - a64.grad).abs().max()) < 1e-4 * float(a64.grad.abs().max())
     with pytest.raises(ValueError, match="targets detached"):
         batch_ssim(a, b.clone().requires_grad_(True))
 
