@@ -12,7 +12,10 @@ C] layout, images stacked). One thread per pixel and channel: launch dims (B·H,
 """
 import warp as wp
 
+# 3DGS's SSIM: an 11×11 Gaussian window of σ 1.5, C1 = 0.01², C2 = 0.03² (images in [0, 1]).
 WINDOW = 11
+SIGMA = 1.5
+C1, C2 = 0.01**2, 0.03**2
 HALF = WINDOW // 2
 
 vec5 = wp.types.vector(length=5, dtype=wp.float32)
@@ -38,8 +41,9 @@ def blur_rows_of_stats(a: wp.array(dtype=float), b: wp.array(dtype=float), windo
 def ssim_columns(rows: wp.array(dtype=vec5), window: wp.array(dtype=float), height: int, width: int,
                  channels: int, c1: float, c2: float, with_partials: int,
                  ssim_map: wp.array(dtype=float), partials: wp.array(dtype=wp.vec3)):
-    """The column pass of the statistics, then the SSIM of each pixel and channel; with_partials:
-    also ∂SSIM/∂(μ_a, ⟨a²⟩, ⟨ab⟩), holding the other blurred statistics fixed."""
+    """The column pass of the statistics, then the SSIM of each pixel and channel (ssim_map, [B·H·W·C]);
+    with_partials: also ∂SSIM/∂(μ_a, ⟨a²⟩, ⟨ab⟩) (partials, [B·H·W·C] vec3; without, a one-element
+    placeholder), holding the other blurred statistics fixed."""
     row, x, c = wp.tid()
     image = row / height
     y = row - image * height

@@ -19,7 +19,12 @@ import numpy as np
 
 from securegs_warp.compare import BASELINE, density_ratio
 from securegs_warp.secure import steganalysis
-from securegs_warp.secure.security import exposure, plot_anchor_clouds
+from securegs_warp.secure.security import plot_anchor_clouds
+
+
+# What must agree between a baseline's run and a container's for one to be scored against the other
+# (the seed may differ: a plain model of another seed gives the measures' own spread).
+SAME = ("width", "height", "iterations", "hidden", "placement", "exposure_radius")
 
 
 def load(folder: Path) -> tuple[dict, dict]:
@@ -28,16 +33,30 @@ def load(folder: Path) -> tuple[dict, dict]:
     try:
         report = json.loads((folder / "secure_vs_baseline.json").read_text())
         with np.load(folder / "anchor_clouds.npz", allow_pickle=False) as arrays:  # no pickled objects
-            return report, {name: arrays[name] for name in arrays.files}
-    except (OSError, ValueError) as e:
+            clouds = {name: arrays[name] for name in arrays.files}
+        missing = [f"meta.{k}" for k in SAME if k not in report.get("meta", {})] + [
+            f"{label}'s anchors" for label in report.get("rows", {}) if label not in clouds]
+    except (OSError, ValueError, AttributeError) as e:
         raise SystemExit(f"{folder}: not a secure_vs_baseline.py output folder ({e})") from None
+    if "rows" not in report or missing:
+        raise SystemExit(f"{folder}: not a complete secure_vs_baseline.py output folder (missing: "
+                         f"{', '.join(missing or ['rows'])})")
+    return report, clouds
 
 
-def box_gap(box, points: np.ndarray) -> float:
-    """Distance between an axis-aligned box [[lo], [hi]] and the bounding box of ``points`` [M, 3]."""
+def box_gap(box, points: np.ndarray) -> float | None:
+    """Distance between an axis-aligned box [[lo], [hi]] and the bounding box of ``points`` [M, 3]
+    (None without a box: the audit found no suspicious region)."""
+    if box is None:
+        return None
     lo, hi = (np.asarray(v) for v in box)
     gap = np.maximum(0.0, np.maximum(lo - points.max(0), points.min(0) - hi))
     return float(np.linalg.norm(gap))
+
+
+def fmt(value, spec: str) -> str:
+    """``value`` formatted by ``spec``, or "–" for None (a measure that does not apply)."""
+    return "–" if value is None else format(value, spec)
 
 
 def main():
@@ -47,36 +66,33 @@ def main():
     ap.add_argument("--png", type=Path, help="draw the anchor clouds (baseline, then each container) here")
     args = ap.parse_args()
     report, arrays = load(args.baseline)
-    rows = report["rows"]
-    if BASELINE not in rows:
+    base = report["rows"].get(BASELINE)
+    if base is None:
         ap.error(f"{args.baseline}: holds no {BASELINE!r} row")
-    hidden, scene = arrays["hidden_points"], arrays["scene_points"]
-    radius = report["meta"]["exposure_radius"]  # the one secure_vs_baseline.py measured with
-    base = rows[BASELINE]
-    base_exposure = exposure(arrays[BASELINE], hidden, scene, radius)
+    hidden = arrays["hidden_points"]
+    base_audit = steganalysis.audit({"xyz": arrays[BASELINE]})
     clouds = {BASELINE: arrays[BASELINE]}
+    print(f"Baseline: {args.baseline.name} (seed {report['meta']['seed']})\n")
     print("| run | model | cover PSNR (vs baseline) | hidden PSNR / SSIM | bits | release MB (×) | anchors | "
           "density ratio | coverage (baseline) | audit score (baseline) | suspicious box to hidden box |")
     print("|---" * 11 + "|")
-    base_audit = steganalysis.audit({"xyz": arrays[BASELINE]})
     for folder in args.containers:
-        their_report, their_arrays = load(folder)
-        if not np.array_equal(their_arrays["hidden_points"], hidden):
-            ap.error(f"{folder}: another hidden object than the baseline's (another scene or mesh)")
-        for label, row in their_report["rows"].items():
-            xyz = their_arrays[label]
-            exposed = exposure(xyz, hidden, scene, radius)
-            audit = steganalysis.audit({"xyz": xyz})
+        theirs, their_arrays = load(folder)
+        differ = [k for k in SAME if theirs["meta"][k] != report["meta"][k]]
+        if differ or not np.array_equal(their_arrays["hidden_points"], hidden):
+            ap.error(f"{folder}: another scene or budget than the baseline's ({', '.join(differ or ['hidden points'])})")
+        for label, row in theirs["rows"].items():
+            audit = steganalysis.audit({"xyz": their_arrays[label]})
             bits = "–" if row.get("bit_accuracy") is None else f"{100 * row['bit_accuracy']:.0f}%"
             hid = "–" if row.get("psnr_hidden") is None else f"{row['psnr_hidden']:.2f} / {row['ssim_hidden']:.3f}"
-            print(f"| {folder.name} | {label} | {row['psnr_public']:.2f} ({row['psnr_public'] - base['psnr_public']:+.2f}) "
-                  f"| {hid} | {bits} "
-                  f"| {row['size_mb']:.2f} ({row['size_mb'] / base['size_mb']:.2f}×) | {row['anchors']:,} "
-                  f"| {density_ratio(exposed, base_exposure):.2f} "
-                  f"| {exposed['coverage']:.3f} ({base_exposure['coverage']:.3f}) "
-                  f"| {audit['score']:.1f} ({base_audit['score']:.1f}) "
-                  f"| {box_gap(audit['suspicious_box'], hidden):.2f} ({box_gap(base_audit['suspicious_box'], hidden):.2f}) |")
-            clouds[label] = xyz
+            print(f"| {folder.name} (seed {theirs['meta']['seed']}) | {label} | {row['psnr_public']:.2f} ({row['psnr_public'] - base['psnr_public']:+.2f}) "
+                  f"| {hid} | {bits} | {row['size_mb']:.2f} ({row['size_mb'] / base['size_mb']:.2f}×) | {row['anchors']:,} "
+                  f"| {fmt(density_ratio(row['exposure'], base['exposure']), '.2f')} "
+                  f"| {row['exposure']['coverage']:.3f} ({base['exposure']['coverage']:.3f}) "
+                  f"| {fmt(audit['score'], '.1f')} ({fmt(base_audit['score'], '.1f')}) "
+                  f"| {fmt(box_gap(audit['suspicious_box'], hidden), '.2f')} "
+                  f"({fmt(box_gap(base_audit['suspicious_box'], hidden), '.2f')}) |")
+            clouds[f"{folder.name}: {label}"] = their_arrays[label]
     if args.png:
         plot_anchor_clouds(args.png, clouds, hidden)
 

@@ -24,7 +24,6 @@ import math
 import typing
 from pathlib import Path
 
-from .data.meshes import UP_AXES
 from .rasterizer import RasterOptions
 from .strategies import RegionAwareStrategy
 
@@ -382,9 +381,6 @@ class SceneSpec:
             raise ValueError(f"hidden_position must be x,y,z, got {self.hidden_position}")
         if not self.hidden_size > 0:
             raise ValueError(f"hidden_size must be > 0, got {self.hidden_size}")
-        if self.hidden_up not in UP_AXES:
-            raise ValueError(f"hidden_up must be one of {', '.join(UP_AXES)} (a mesh file's up axis), "
-                             f"got {self.hidden_up!r}")
         if Path(self.source).is_dir() and not Path(self.source).is_absolute():
             object.__setattr__(self, "source", str(Path(self.source).resolve()))
 

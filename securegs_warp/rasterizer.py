@@ -17,6 +17,7 @@ import warp as wp
 from .kernels import binning
 from .kernels.blend import COLOR_STORAGES, CPU_BATCH, batch_size, blend_kernels, pack_kernel, record_width
 from .kernels.projection import RADIUS_RULES, projection_kernel
+from .warp_scope import WarpScope
 
 DEPTH_MODES = (None, "accumulated", "expected")
 # Which tiles a Gaussian is binned to: every tile of its radius rectangle (gsplat 1.5), or only those
@@ -505,23 +506,6 @@ def blend_kernels_for(opts: RasterOptions, channels: int, with_depth: bool, coop
         if cooperative else CPU_BATCH
     return blend_kernels(channels, opts.tile_size, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
                          opts.backward_walk == "warp", opts.backward_max_registers, packed=packed)
-
-
-class WarpScope:
-    """``with``: Warp's device and (on CUDA) torch's current stream."""
-
-    def __init__(self, device, torch_device: torch.device):
-        self.scopes = [wp.ScopedDevice(device)]
-        if torch_device.type == "cuda":
-            self.scopes.append(wp.ScopedStream(wp.stream_from_torch(torch_device)))
-
-    def __enter__(self):
-        for s in self.scopes:
-            s.__enter__()
-
-    def __exit__(self, *exc):
-        for s in reversed(self.scopes):
-            s.__exit__(*exc)
 
 
 OUTPUT_NAMES = ("image", "alpha", "depth", "radii", "means2d", "conics", "depths", "opacities")

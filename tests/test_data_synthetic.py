@@ -5,7 +5,7 @@ import pytest
 import warp as wp
 
 from securegs_warp.data import DataError, load_scene, make_synthetic_scene
-from securegs_warp.data.meshes import HIDDEN_OBJECTS
+from securegs_warp.data.meshes import HIDDEN_OBJECTS, load_mesh
 from securegs_warp.data.synthetic import SCENES
 
 SMALL = dict(width=48, height=36, n_train=8, n_test=2)
@@ -160,8 +160,14 @@ def test_user_mesh_and_placement(tmp_path):
     low, high = upright.hidden_bbox
     np.testing.assert_allclose(high - low, [0.4, 0.8, 0.4], atol=1e-6)
     np.testing.assert_allclose([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2]], [1.0, -0.5, 0.2], atol=1e-6)
+    # +y onto +z, not onto -z: the file's y apex (0, 2, 0) is the top of the turned mesh, and its
+    # z apex (0, 0, 4) now points along -y (a right-handed turn about x).
+    turned = load_mesh(tmp_path / "tetra.obj", up="y").vertices
+    assert turned[2, 2] == pytest.approx(turned[:, 2].max()) and turned[3, 1] == pytest.approx(turned[:, 1].min())
     with pytest.raises(DataError, match="up axis must be one of z, y, not 'x'"):
         make_synthetic_scene(hidden=str(tmp_path / "tetra.obj"), hidden_up="x", **SMALL)
+    with pytest.raises(DataError, match="hidden_up 'y' turns a mesh file"):
+        make_synthetic_scene(hidden="mug", hidden_up="y", **SMALL)
 
 
 def test_bad_arguments():

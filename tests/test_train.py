@@ -87,7 +87,7 @@ def test_ssim_of_flat_images_is_one_with_a_finite_gradient(value):
     a = torch.full((12, 16, 3), value, requires_grad=True)
     s = ssim(a, torch.full((12, 16, 3), value))
     s.backward()
-    assert abs(float(s) - 1.0) < 1e-6 and bool(torch.isfinite(a.grad).all())
+    assert abs(s.item() - 1.0) < 1e-6 and bool(torch.isfinite(a.grad).all())
 
 
 def test_schedule_scales_with_run_length():

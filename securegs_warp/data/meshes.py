@@ -309,6 +309,12 @@ def robot() -> TriMesh:
 HIDDEN_OBJECTS = {"mug": mug, "lamp": lamp, "pawn": pawn, "robot": robot}
 
 
+def check_up_axis(up: str) -> None:
+    """DataError naming ``up`` unless it is one of UP_AXES."""
+    if up not in UP_AXES:
+        raise DataError(f"a mesh's up axis must be one of {', '.join(UP_AXES)}, not {up!r}")
+
+
 def load_mesh(path, material: Material | None = None, up: str = "z") -> TriMesh:
     """Read a user's mesh file (OBJ, PLY, OFF, STL or GLB, through trimesh), normalised (see
     :func:`normalized`). Vertex or face colours, or a texture baked to vertex colours, are kept
@@ -320,8 +326,7 @@ def load_mesh(path, material: Material | None = None, up: str = "z") -> TriMesh:
     """
     import trimesh
 
-    if up not in UP_AXES:
-        raise DataError(f"a mesh's up axis must be one of {', '.join(UP_AXES)}, not {up!r}")
+    check_up_axis(up)
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: mesh file not found")

@@ -26,7 +26,8 @@ import warp as wp
 from ..kernels import raycast
 from .cameras import Camera, SceneData, cameras_looking_at, hemisphere_positions, intrinsics_from_fov, orbit_positions
 from .errors import DataError
-from .meshes import HIDDEN_OBJECTS, MESH_SUFFIXES, Material, TriMesh, box, cylinder, lathe, load_mesh, merge, place
+from .meshes import HIDDEN_OBJECTS, MESH_SUFFIXES, Material, TriMesh, box, check_up_axis, cylinder, lathe, load_mesh
+from .meshes import merge, place
 from .meshes import rotation_z, sphere, torus
 
 # Independent random streams of one seed, so that e.g. choosing another hidden object leaves the
@@ -363,6 +364,10 @@ def make_synthetic_scene(
         width, height, n_train, n_test, n_points, supersample, fov_degrees, point_noise)
     if hidden_placement not in PLACEMENTS:
         raise DataError(f"hidden_placement must be one of {sorted(PLACEMENTS)}, not {hidden_placement!r}")
+    check_up_axis(hidden_up)
+    if hidden_up != "z" and not (isinstance(hidden, str) and Path(hidden).suffix.lower() in MESH_SUFFIXES):
+        raise DataError(f"hidden_up {hidden_up!r} turns a mesh file; the hidden payload {hidden!r} is not one "
+                        "(built-in objects stand on +z)")
     scene_name, layout = _scene_layout(name, seed)
     rng = [np.random.default_rng((int(seed), stream)) for stream in range(3)]
     K = intrinsics_from_fov(fov_degrees, width, height)

@@ -9,19 +9,15 @@ import torch
 import warp as wp
 
 from ..kernels import ssim as ssim_kernels
-from ..rasterizer import WarpScope
-
-SSIM_WINDOW = ssim_kernels.WINDOW
-SSIM_SIGMA = 1.5
-SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2
+from ..warp_scope import WarpScope
 
 
 @functools.lru_cache(maxsize=8)
 def _gaussian_window(device: torch.device) -> torch.Tensor:
     """[11] 1-D Gaussian window (σ 1.5, sums to 1): 3DGS's 11×11 window is its outer product with
     itself, so a row pass and a column pass give the same blur."""
-    x = torch.arange(SSIM_WINDOW, dtype=torch.float32) - SSIM_WINDOW // 2
-    g = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
+    x = torch.arange(ssim_kernels.WINDOW, dtype=torch.float32) - ssim_kernels.HALF
+    g = torch.exp(-(x**2) / (2 * ssim_kernels.SIGMA**2))
     return (g / g.sum()).to(device)
 
 
@@ -34,14 +30,15 @@ class _BatchSSIM(torch.autograd.Function):
     where Warp runs one thread, they are slower than torch's convolutions (docs/results.md)."""
 
     @staticmethod
-    def forward(ctx, images: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    def forward(ctx, images: torch.Tensor, targets: torch.Tensor, with_partials: bool) -> torch.Tensor:
+        """with_partials: whether a backward will follow (inside forward grad mode is off, and
+        needs_input_grad says only whether the images require grad, also under no_grad)."""
         wp.init()  # idempotent; Warp must be up before its devices can be named
         a, b = images.detach().float().contiguous(), targets.detach().float().contiguous()
         n, h, w, c = a.shape
         window = _gaussian_window(a.device)
         rows = torch.empty((a.numel(), 5), dtype=torch.float32, device=a.device)
         ssim_map = torch.empty_like(a)
-        with_partials = ctx.needs_input_grad[0]
         partials = torch.empty((a.numel(), 3) if with_partials else (1, 3), dtype=torch.float32, device=a.device)
         dims = (n * h, w, c)
         with WarpScope(wp.device_from_torch(a.device), a.device):
@@ -49,7 +46,8 @@ class _BatchSSIM(torch.autograd.Function):
             wp.launch(ssim_kernels.blur_rows_of_stats, dim=dims,
                       inputs=[flat_a, flat_b, flat_window, w, c], outputs=[wp.from_torch(rows, dtype=ssim_kernels.vec5)])
             wp.launch(ssim_kernels.ssim_columns, dim=dims,
-                      inputs=[wp.from_torch(rows, dtype=ssim_kernels.vec5), flat_window, h, w, c, SSIM_C1, SSIM_C2,
+                      inputs=[wp.from_torch(rows, dtype=ssim_kernels.vec5), flat_window, h, w, c, ssim_kernels.C1,
+                              ssim_kernels.C2,
                               int(with_partials)],
                       outputs=[_flat(ssim_map), wp.from_torch(partials, dtype=wp.vec3)])
         if with_partials:
@@ -57,6 +55,7 @@ class _BatchSSIM(torch.autograd.Function):
         return ssim_map.mean(dim=(1, 2, 3))
 
     @staticmethod
+    @torch.autograd.function.once_differentiable  # the partials are not themselves differentiated
     def backward(ctx, grad_out: torch.Tensor):
         a, b, partials = ctx.saved_tensors
         n, h, w, c = a.shape
@@ -73,7 +72,7 @@ class _BatchSSIM(torch.autograd.Function):
                       inputs=[wp.from_torch(rows, dtype=wp.vec3), _flat(a), _flat(b), flat_window, _flat(scale),
                               h, w, c],
                       outputs=[_flat(grad)])
-        return grad, None
+        return grad, None, None
 
 
 def _flat(t: torch.Tensor):
@@ -90,13 +89,18 @@ def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def batch_ssim(images: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
-    """[B] mean SSIM of each pair of [B, H, W, C] images (as ``ssim``), all B in one blur."""
+    """[B] mean SSIM of each pair of [B, H, W, C] images (as ``ssim``), all B in one blur, computed in
+    float32 whatever the inputs' type. The gradient reaches the images only: targets that require
+    one are refused."""
     if images.shape != targets.shape or images.ndim != 4:
         raise ValueError(f"batch_ssim needs two [B, H, W, C] batches of one shape, got {list(images.shape)}, "
                          f"{list(targets.shape)}")
-    if targets.requires_grad and torch.is_grad_enabled():
+    grad = torch.is_grad_enabled()
+    if targets.requires_grad and grad:
         raise ValueError("batch_ssim's gradient reaches the images only: pass the targets detached")
-    return _BatchSSIM.apply(images, targets)
+    if images.device != targets.device:
+        raise ValueError(f"batch_ssim needs images and targets on one device, got {images.device} and {targets.device}")
+    return _BatchSSIM.apply(images, targets, grad and images.requires_grad)
 
 
 def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
