@@ -1,13 +1,17 @@
 """Detection AUC of ``securegs audit`` (no reference, no key) over runs of plain and hiding models.
 
 Each RUN is an ``anchor_clouds.npz`` written by ``scripts/secure_vs_baseline.py`` (one baseline and
-its SecureGS variants trained on one scene with one seed); the audit scores every anchor cloud and
-the AUC says how well the score tells each variant from the plain models (0.5: chance).
+its SecureGS variants trained on one scene with one seed), or a ``secure_vs_baseline.py --out``
+folder: folders of one scene, seed and budget (runs split over processes with ``--no-baseline``)
+join into one run. The audit scores every anchor cloud and the AUC says how well the score tells
+each variant from the plain models (0.5: chance).
 
     python scripts/audit_auc.py runs/seed*/anchor_clouds.npz [--with-reference]
+    python scripts/audit_auc.py runs/bunny_*_s* runs/teapot_*_s* --with-reference
 """
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 
@@ -15,19 +19,43 @@ from securegs_warp.compare import BASELINE
 from securegs_warp.secure.steganalysis import auc_by_model
 
 SCENE_ARRAYS = ("hidden_points", "scene_points")  # stored beside the clouds for the plots, not models
+# What makes folders one run: the same scene, hidden object, seed and budget.
+RUN_KEYS = ("hidden", "placement", "seed", "width", "height", "iterations")
+
+
+def clouds(path: Path) -> dict:
+    """Model label -> anchor positions [N, 3] of one anchor_clouds.npz (no pickled objects)."""
+    with np.load(path, allow_pickle=False) as data:
+        return {name: data[name] for name in data.files if name not in SCENE_ARRAYS}
+
+
+def load_runs(paths: list[str]) -> list[dict]:
+    """The runs of ``paths``: each .npz one run; folders grouped by RUN_KEYS of their reports."""
+    runs, groups = [], {}
+    for path in map(Path, paths):
+        if not path.is_dir():
+            runs.append(clouds(path))
+            continue
+        meta = json.loads((path / "secure_vs_baseline.json").read_text())["meta"]
+        group = groups.setdefault(tuple(meta[k] for k in RUN_KEYS), {})
+        for label, xyz in clouds(path / "anchor_clouds.npz").items():
+            if label in group:
+                raise SystemExit(f"{path}: a second {label!r} for one scene, seed and budget")
+            group[label] = xyz
+    return runs + list(groups.values())
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("runs", nargs="+", help="anchor_clouds.npz files")
+    ap.add_argument("runs", nargs="+", help="anchor_clouds.npz files or secure_vs_baseline.py output folders")
     ap.add_argument("--with-reference", action="store_true",
                     help="audit each model against the plain model of every other run (an attacker's reference)")
     ap.add_argument("--json", help="also write the scores and AUCs here")
     args = ap.parse_args()
-    runs = []
-    for path in args.runs:
-        with np.load(path, allow_pickle=False) as data:
-            runs.append({name: data[name] for name in data.files if name not in SCENE_ARRAYS})
+    try:
+        runs = load_runs(args.runs)
+    except (OSError, KeyError, ValueError) as e:
+        raise SystemExit(f"cannot read the runs: {e}") from None
     result = auc_by_model(runs, BASELINE, args.with_reference)
     print("| model | audits | scores | AUC against the plain models |\n|---|---|---|---|")
     for label, r in result.items():
