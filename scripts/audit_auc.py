@@ -15,18 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from securegs_warp.compare import BASELINE
+from securegs_warp.compare import BASELINE, SCENE_ARRAYS, read_report
 from securegs_warp.secure.steganalysis import auc_by_model
 
-SCENE_ARRAYS = ("hidden_points", "scene_points")  # stored beside the clouds for the plots, not models
 # What makes folders one run: the same scene, hidden object, seed and budget.
 RUN_KEYS = ("hidden", "placement", "seed", "width", "height", "iterations")
 
 
-def clouds(path: Path) -> dict:
-    """Model label -> anchor positions [N, 3] of one anchor_clouds.npz (no pickled objects)."""
-    with np.load(path, allow_pickle=False) as data:
-        return {name: data[name] for name in data.files if name not in SCENE_ARRAYS}
+def models(arrays: dict) -> dict:
+    """Model label -> anchor positions [N, 3]: the arrays of an anchor_clouds.npz less SCENE_ARRAYS."""
+    return {name: xyz for name, xyz in arrays.items() if name not in SCENE_ARRAYS}
 
 
 def load_runs(paths: list[str]) -> list[dict]:
@@ -34,11 +32,12 @@ def load_runs(paths: list[str]) -> list[dict]:
     runs, groups = [], {}
     for path in map(Path, paths):
         if not path.is_dir():
-            runs.append(clouds(path))
+            with np.load(path, allow_pickle=False) as data:  # no pickled objects
+                runs.append(models({name: data[name] for name in data.files}))
             continue
-        meta = json.loads((path / "secure_vs_baseline.json").read_text())["meta"]
-        group = groups.setdefault(tuple(meta[k] for k in RUN_KEYS), {})
-        for label, xyz in clouds(path / "anchor_clouds.npz").items():
+        report, arrays = read_report(path)
+        group = groups.setdefault(tuple(report["meta"][k] for k in RUN_KEYS), {})
+        for label, xyz in models(arrays).items():
             if label in group:
                 raise SystemExit(f"{path}: a second {label!r} for one scene, seed and budget")
             group[label] = xyz

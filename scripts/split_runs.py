@@ -3,8 +3,8 @@
 
 Each argument is a ``secure_vs_baseline.py --out`` folder (its ``secure_vs_baseline.json`` and
 ``anchor_clouds.npz``); a baseline's folder among the containers gives the measures' own spread
-between seeds (a plain model against another). Prints, per model of the containers: cover PSNR against the baseline's, hidden
-PSNR / SSIM, bits, release size against the baseline's, density ratio and coverage (the geometric
+between seeds (a plain model against another). Prints, per model of the containers: cover PSNR
+against the baseline's, hidden PSNR / SSIM, bits, release size against the baseline's, density ratio and coverage (the geometric
 security measures, r = 3% of the hidden object's bounding-box diagonal) and the reference-free audit
 score, with how far the audit's suspicious box lies from the hidden object's box (0: they touch).
 
@@ -12,12 +12,11 @@ score, with how far the audit's suspicious box lies from the hidden object's box
         --png docs/geometric_security_1080p_bunny.png
 """
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
-from securegs_warp.compare import BASELINE, density_ratio
+from securegs_warp.compare import BASELINE, density_ratio, read_report
 from securegs_warp.secure import steganalysis
 from securegs_warp.secure.security import plot_anchor_clouds
 
@@ -28,19 +27,15 @@ SAME = ("width", "height", "iterations", "hidden", "placement", "exposure_radius
 
 
 def load(folder: Path) -> tuple[dict, dict]:
-    """(the report of secure_vs_baseline.json, the arrays of anchor_clouds.npz) of one folder;
-    SystemExit naming what is missing."""
+    """``compare.read_report`` of one folder whose report names every SAME field; SystemExit naming
+    what is wrong."""
     try:
-        report = json.loads((folder / "secure_vs_baseline.json").read_text())
-        with np.load(folder / "anchor_clouds.npz", allow_pickle=False) as arrays:  # no pickled objects
-            clouds = {name: arrays[name] for name in arrays.files}
-        missing = [f"meta.{k}" for k in SAME if k not in report.get("meta", {})] + [
-            f"{label}'s anchors" for label in report.get("rows", {}) if label not in clouds]
-    except (OSError, ValueError, AttributeError) as e:
-        raise SystemExit(f"{folder}: not a secure_vs_baseline.py output folder ({e})") from None
-    if "rows" not in report or missing:
-        raise SystemExit(f"{folder}: not a complete secure_vs_baseline.py output folder (missing: "
-                         f"{', '.join(missing or ['rows'])})")
+        report, clouds = read_report(folder)
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
+    missing = [key for key in SAME if key not in report["meta"]]
+    if missing:
+        raise SystemExit(f"{folder}: its report's meta lacks {', '.join(missing)}")
     return report, clouds
 
 
@@ -85,8 +80,10 @@ def main():
             audit = steganalysis.audit({"xyz": their_arrays[label]})
             bits = "–" if row.get("bit_accuracy") is None else f"{100 * row['bit_accuracy']:.0f}%"
             hid = "–" if row.get("psnr_hidden") is None else f"{row['psnr_hidden']:.2f} / {row['ssim_hidden']:.3f}"
-            print(f"| {folder.name} (seed {theirs['meta']['seed']}) | {label} | {row['psnr_public']:.2f} ({row['psnr_public'] - base['psnr_public']:+.2f}) "
-                  f"| {hid} | {bits} | {row['size_mb']:.2f} ({row['size_mb'] / base['size_mb']:.2f}×) | {row['anchors']:,} "
+            cover = f"{row['psnr_public']:.2f} ({row['psnr_public'] - base['psnr_public']:+.2f})"
+            size = f"{row['size_mb']:.2f} ({row['size_mb'] / base['size_mb']:.2f}×)"
+            print(f"| {folder.name} (seed {theirs['meta']['seed']}) | {label} | {cover} | {hid} | {bits} | {size} "
+                  f"| {row['anchors']:,} "
                   f"| {fmt(density_ratio(row['exposure'], base['exposure']), '.2f')} "
                   f"| {row['exposure']['coverage']:.3f} ({base['exposure']['coverage']:.3f}) "
                   f"| {fmt(audit['score'], '.1f')} ({fmt(base_audit['score'], '.1f')}) "

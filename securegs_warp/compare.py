@@ -25,6 +25,8 @@ from .secure.security import exposure
 from .strategies import MODES
 
 BASELINE = "Scaffold-GS baseline"
+# anchor_clouds.npz holds the scene's points beside the models' anchors (for the plots); not models.
+SCENE_ARRAYS = ("hidden_points", "scene_points")
 COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
            "ssim_hidden", "hidden_learnt", "bit_accuracy", "bit_accuracy_on_baseline", "fps_public",
            "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
@@ -133,6 +135,25 @@ def density_ratio(exposed: dict, baseline: dict) -> float | None:
     """Anchors within r of the hidden-only surface in one model over those in the baseline (two
     ``exposure`` dicts); None when the baseline has none there."""
     return exposed["surface_density"] / baseline["surface_density"] if baseline["surface_density"] > 0 else None
+
+
+def read_report(folder: Path) -> tuple[dict, dict]:
+    """({"meta", "rows"} of secure_vs_baseline.json, the arrays of anchor_clouds.npz: model label ->
+    anchor positions [N, 3], plus SCENE_ARRAYS) of one ``scripts/secure_vs_baseline.py --out`` folder;
+    ValueError naming the folder when either is missing or unreadable (no pickled objects are read)."""
+    folder = Path(folder)
+    try:
+        report = json.loads((folder / "secure_vs_baseline.json").read_text())
+        with np.load(folder / "anchor_clouds.npz", allow_pickle=False) as arrays:
+            clouds = {name: arrays[name] for name in arrays.files}
+        if not isinstance(report, dict) or not {"meta", "rows"} <= set(report):
+            raise ValueError("no meta or rows in the report")
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{folder}: not a secure_vs_baseline.py output folder ({e})") from None
+    missing = [label for label in report["rows"] if label not in clouds]
+    if missing:
+        raise ValueError(f"{folder}: anchor_clouds.npz lacks the anchors of {', '.join(missing)}")
+    return report, clouds
 
 
 def write_report(out: Path, meta: dict, rows: dict) -> str:

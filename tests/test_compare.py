@@ -64,3 +64,20 @@ def test_release_size_counts_the_release_files():
                           torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.zeros(n, 1))
     size = release_mb(ScaffoldModel(anchors, ScaffoldHeads(d, k)))
     assert n * (6 + 3 * k + d + 11) * 4 / 1e6 < size < 1.0  # the PLY's float32 rows plus the MLP files
+
+
+def test_read_report_reads_what_secure_vs_baseline_writes(tmp_path):
+    from securegs_warp.compare import BASELINE, read_report, write_report
+    exposure = {"surface_fraction": 0.1, "coverage": 0.2, "surface_density": 0.3}
+    meta = {"device": "cpu", "width": 8, "height": 6, "iterations": 2, "hidden": "mug", "payload": "object"}
+    write_report(tmp_path, meta, {BASELINE: {"psnr_public": 20.0, "exposure": exposure}})
+    xyz = np.arange(6, dtype=np.float32).reshape(2, 3)
+    np.savez_compressed(tmp_path / "anchor_clouds.npz", hidden_points=xyz, scene_points=xyz, **{BASELINE: xyz})
+    report, clouds = read_report(tmp_path)
+    assert report["meta"] == meta and report["rows"][BASELINE]["psnr_public"] == 20.0
+    np.testing.assert_array_equal(clouds[BASELINE], xyz)
+    np.savez_compressed(tmp_path / "anchor_clouds.npz", hidden_points=xyz)
+    with pytest.raises(ValueError, match="lacks the anchors of Scaffold-GS baseline"):
+        read_report(tmp_path)
+    with pytest.raises(ValueError, match="not a secure_vs_baseline.py output folder"):
+        read_report(tmp_path / "nothing")

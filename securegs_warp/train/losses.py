@@ -47,8 +47,7 @@ class _BatchSSIM(torch.autograd.Function):
                       inputs=[flat_a, flat_b, flat_window, w, c], outputs=[wp.from_torch(rows, dtype=ssim_kernels.vec5)])
             wp.launch(ssim_kernels.ssim_columns, dim=dims,
                       inputs=[wp.from_torch(rows, dtype=ssim_kernels.vec5), flat_window, h, w, c, ssim_kernels.C1,
-                              ssim_kernels.C2,
-                              int(with_partials)],
+                              ssim_kernels.C2, int(with_partials)],
                       outputs=[_flat(ssim_map), wp.from_torch(partials, dtype=wp.vec3)])
         if with_partials:
             ctx.save_for_backward(a, b, partials)
