@@ -18,13 +18,12 @@ import os
 
 import torch
 
-from securegs_warp import benchmark, step_profile
+from securegs_warp import benchmark, compare, step_profile
 from securegs_warp.cli.common import quiet_warp
 from securegs_warp.config import SecureConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure.trainer import SecureTrainer
-from securegs_warp.strategies import RegionAwareStrategy
 from securegs_warp.train import ScaffoldTrainer
 
 
@@ -39,9 +38,10 @@ def main():
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--hide", default="mug", help="the hidden object of the scene")
     parser.add_argument("--payload", default=SecureConfig().payload)
-    parser.add_argument("--mode", default="rdo", help="density modes of the SecureGS trainers, comma-separated (rdo: "
-                                                      "the paper's, as in docs/results.md's profiles; cover: an "
-                                                      "object's default)")
+    parser.add_argument("--mode", default="rdo", help="the SecureGS trainers, comma-separated, each a density mode "
+                                                      "with options MODE[:FIELD=VALUE]... (rdo: the paper's, as in "
+                                                      "docs/results.md's profiles; cover: an object's default; e.g. "
+                                                      "cover:hidden_capture=false)")
     parser.add_argument("--count-ops", action="store_true", help="also count what a step launches, by section")
     parser.add_argument("--no-timing", dest="timing", action="store_false", help="skip the timed steps")
     parser.add_argument("--options", default="", help="rasterizer options on top of the device's, e.g. capture=true")
@@ -58,7 +58,10 @@ def main():
     modes = [m.strip() for m in args.mode.split(",") if m.strip()]
     trainers = {"Scaffold-GS": lambda: ScaffoldTrainer(scene, config, device=args.device)}
     for mode in modes:
-        secure = SecureConfig(payload=args.payload, strategy=RegionAwareStrategy(mode=mode))
+        try:
+            _, secure = compare.parse_variant(mode, SecureConfig(payload=args.payload))
+        except ValueError as e:
+            parser.error(str(e))
         label = "SecureGS" if len(modes) == 1 else f"SecureGS {mode}"
         trainers[label] = functools.partial(SecureTrainer, scene, config, secure, device=args.device)
     results, counts = {}, {}

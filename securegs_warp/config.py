@@ -243,6 +243,9 @@ class SecureConfig:
         this is the knob that trades hidden fidelity for training time (docs/results.md, "The hidden
         stride"). The private heads take one Adam step per hidden step; the RDO mode gathers ∇_hid
         on the steps that are multiples of both this and its own ``hidden_every``.
+    hidden_capture: on CUDA, a box-frame key's decoding of its serving anchors is replayed from
+        CUDA graphs during training (``secure.captured``): the same values up to float rounding,
+        for a fraction of the host work. Off: decoded op by op, as on the CPU.
     """
 
     payload: str = "object+bits:48"
@@ -263,6 +266,7 @@ class SecureConfig:
     hidden_depth: int | None = None
     hidden_crop: bool = False
     hidden_stride: int = 1
+    hidden_capture: bool = True
 
     def strategy_mode(self, kinds) -> str:
         """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):

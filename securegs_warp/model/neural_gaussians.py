@@ -24,27 +24,32 @@ class AnchorViewInputs:
     """What an offset source may use, for the Nv visible anchors of one view.
 
     Attributes:
-        anchor_index: [Nv] long, indices of the visible anchors in the model.
+        anchor_index: [Nv] long, indices of the visible anchors in the model (None in a decoder
+            replayed from a CUDA graph, whose offset source does not read it).
         xyz: [Nv, 3] anchor positions.
         feat: [Nv, d] blended anchor features f̂ (the raw features when the heads have no bank).
         ob_view: [Nv, 3] unit directions camera -> anchor.
         ob_dist: [Nv, 1] camera-anchor distances.
         scaling: [Nv, 6] linear scalings ``exp(model.scaling)``.
-        offsets: [Nv, k, 3] the stored offsets ``model.offsets``.
+        offsets: [Nv, k, 3] the stored offsets ``model.offsets`` (None as ``anchor_index``).
     """
 
-    anchor_index: torch.Tensor
+    anchor_index: torch.Tensor | None
     xyz: torch.Tensor
     feat: torch.Tensor
     ob_view: torch.Tensor
     ob_dist: torch.Tensor
     scaling: torch.Tensor
-    offsets: torch.Tensor
+    offsets: torch.Tensor | None
 
 
 OffsetSource = Callable[[AnchorViewInputs], torch.Tensor]
 """Maps :class:`AnchorViewInputs` to world-space displacements [Nv, k, 3] of the k Gaussians from
 their anchor."""
+
+RowDecoder = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], tuple]
+"""Maps anchor positions [Nv, 3], features [Nv, d], log scalings [Nv, 6] and the camera centre [3]
+to the Nv*k Gaussians of those anchors before the opacity test (see :func:`decode_rows`)."""
 
 
 def stored_offsets(inputs: AnchorViewInputs) -> torch.Tensor:
@@ -62,6 +67,7 @@ def generate_neural_gaussians(
     offset_source: OffsetSource = stored_offsets,
     feature_grad: float = 1.0,
     scaling_grad: float = 1.0,
+    rows: RowDecoder | None = None,
 ) -> dict[str, torch.Tensor]:
     """Decode the visible anchors into the Gaussians of one view, exactly as Scaffold-GS does.
 
@@ -111,34 +117,65 @@ def generate_neural_gaussians(
     k = heads.n_offsets
 
     xyz = model.xyz[anchor_index]
-    ob_view = xyz - camera_center.to(xyz)
-    ob_dist = ob_view.norm(dim=1, keepdim=True)
-    ob_view = ob_view / ob_dist
-    feat = heads.blend_features(scale_gradient(model.feat[anchor_index], feature_grad), ob_view, ob_dist)
-    scaling = torch.exp(scale_gradient(model.scaling[anchor_index], scaling_grad))
-    inputs = AnchorViewInputs(anchor_index, xyz, feat, ob_view, ob_dist, scaling, model.offsets[anchor_index])
+    feat = scale_gradient(model.feat[anchor_index], feature_grad)
+    log_scaling = scale_gradient(model.scaling[anchor_index], scaling_grad)
+    if rows is None:
+        neural_opacity, means, quats, scales, colors = decode_rows(
+            heads, offset_source, xyz, feat, log_scaling, camera_center.to(xyz), camera_index=camera_index,
+            anchor_index=anchor_index, offsets=model.offsets[anchor_index])
+    else:
+        neural_opacity, means, quats, scales, colors = rows(xyz, feat, log_scaling, camera_center.to(xyz))
 
-    neural_opacity, cov, color = heads(feat, ob_view, ob_dist, camera_index)
-    displacement = offset_source(inputs)  # [Nv, k, 3]
-
-    neural_opacity = neural_opacity.reshape(-1)
     mask = neural_opacity > 0.0
     # The kept rows found once (one host synchronisation; each boolean-mask index costs one).
     kept = mask.nonzero()[:, 0]
-    # Gaussian i*k + j belongs to visible anchor i: select per-anchor quantities by that anchor.
-    parent = kept // k
-    cov = cov.reshape(-1, 7)[kept]
     return {
-        "means": xyz[parent] + displacement.reshape(-1, 3)[kept],
-        "quats": F.normalize(cov[:, 3:7], dim=-1),
-        "scales": scaling[parent, 3:] * torch.sigmoid(cov[:, :3]),
+        "means": means[kept],
+        "quats": quats[kept],
+        "scales": scales[kept],
         "opacities": neural_opacity[kept],
-        "colors": color.reshape(-1, 3)[kept],
-        "anchor_index": anchor_index[parent],
+        "colors": colors[kept],
+        # Gaussian i*k + j belongs to visible anchor i.
+        "anchor_index": anchor_index[kept // k],
         "neural_opacity": neural_opacity,
         "mask": mask,
         "visible_mask": visible_mask,
     }
+
+
+def decode_rows(heads: ScaffoldHeads, offset_source: OffsetSource, xyz: torch.Tensor, feat: torch.Tensor,
+                log_scaling: torch.Tensor, camera_center: torch.Tensor, *, camera_index: int | None = None,
+                anchor_index: torch.Tensor | None = None, offsets: torch.Tensor | None = None) -> tuple:
+    """Every one of the k Gaussians of each of Nv anchors, before the opacity test: a ``RowDecoder``.
+
+    Args:
+        heads, offset_source, camera_index: as ``generate_neural_gaussians``.
+        xyz: [Nv, 3] the anchors' positions; feat: [Nv, d] their features (before the feature bank);
+        log_scaling: [Nv, 6] their scalings l_v (log); camera_center: [3].
+        anchor_index, offsets: [Nv] and [Nv, k, 3], the anchors' model indices and stored offsets,
+            for offset sources that read them (None where the source does not).
+
+    Returns:
+        ``neural_opacity`` [Nv*k] (tanh, negative ones included), ``means`` [Nv*k, 3], ``quats``
+        [Nv*k, 4] (unit, w first), ``scales`` [Nv*k, 3] (linear), ``colors`` [Nv*k, 3]; row i*k + j
+        is Gaussian j of anchor i.
+    """
+    ob_view = xyz - camera_center
+    ob_dist = ob_view.norm(dim=1, keepdim=True)
+    ob_view = ob_view / ob_dist
+    feat = heads.blend_features(feat, ob_view, ob_dist)
+    scaling = torch.exp(log_scaling)
+    inputs = AnchorViewInputs(anchor_index, xyz, feat, ob_view, ob_dist, scaling, offsets)
+
+    neural_opacity, cov, color = heads(feat, ob_view, ob_dist, camera_index)
+    displacement = offset_source(inputs)  # [Nv, k, 3]
+    return (
+        neural_opacity.reshape(-1),
+        (xyz[:, None, :] + displacement).reshape(-1, 3),
+        F.normalize(cov[..., 3:7], dim=-1).reshape(-1, 4),
+        (scaling[:, None, 3:] * torch.sigmoid(cov[..., :3])).reshape(-1, 3),
+        color.reshape(-1, 3),
+    )
 
 
 def unit_fraction(name: str, value: float, meaning: str = "a share of a gradient") -> float:

@@ -10,6 +10,7 @@ from ..model.neural_gaussians import AnchorViewInputs, visible_anchor_mask
 from ..rasterizer import RasterOptions
 from ..render import camera_tensors, render_view
 from ..scaffold_model import ScaffoldModel, decode_all
+from .captured import CapturedRows
 from .heads import PrivateHeads
 
 
@@ -22,6 +23,7 @@ class SecureModel(ScaffoldModel):
     def __init__(self, anchors: AnchorModel, heads: ScaffoldHeads, secrets: list[PrivateHeads]):
         super().__init__(anchors, heads)
         self.secrets = nn.ModuleList(secrets)
+        self._captured: dict[int, CapturedRows] = {}  # per secret, while its heads are the same object
 
     @property
     def private(self) -> PrivateHeads | None:
@@ -42,7 +44,8 @@ class SecureModel(ScaffoldModel):
 
     def render_hidden(self, camera, options: RasterOptions | None = None, *, background: torch.Tensor | None = None,
                       camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
-                      anchors=None, secret: int = 0, visible: torch.Tensor | None = None) -> dict:
+                      anchors=None, secret: int = 0, visible: torch.Tensor | None = None,
+                      capture: bool = False) -> dict:
         """Secret ``secret``'s hidden render of a view (as ``ScaffoldModel.render``); needs its key.
 
         feature_grad, scaling_grad: the share of this render's gradient that reaches the public
@@ -51,15 +54,23 @@ class SecureModel(ScaffoldModel):
         ``PerturbedAnchors`` (same rows; its ``keep`` mask drops anchors from the render).
         visible: [N] bool, the anchors of ``anchors`` visible from ``camera`` (``visible_anchor_mask``)
         when the caller has them already (the public render of the same view): not computed again.
+        capture: decode from CUDA graphs (``CapturedRows``) where that gives the same render: this
+        model's own anchors on CUDA, a box-frame key decoding its serving anchors, gradients enabled.
         """
         private = self._key(secret)
         if private.decoder is None:
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
+        own = anchors is None
         anchors = self.anchors if anchors is None else anchors
+        rows = None
+        if capture and own and private.serves_by_radius and anchors.xyz.is_cuda and torch.is_grad_enabled():
+            if secret not in self._captured or self._captured[secret].private is not private:
+                self._captured[secret] = CapturedRows(private)
+            rows = self._captured[secret]
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
-                           anchor_mask=self._decoding_mask(private, anchors, camera, visible))
+                           anchor_mask=self._decoding_mask(private, anchors, camera, visible), rows=rows)
 
     def _decoding_mask(self, private: PrivateHeads, anchors, camera,
                        visible: torch.Tensor | None = None) -> torch.Tensor | None:

@@ -130,7 +130,7 @@ class SecureTrainer(ScaffoldTrainer):
         return self.model.render_hidden(cam, self.config.raster, background=self.payloads[secret].background,
                                         camera_index=camera_index, feature_grad=self.current_feature_grad(step),
                                         scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors, secret=secret,
-                                        visible=visible)
+                                        visible=visible, capture=self.secure.hidden_capture)
 
     def current_feature_grad(self, step: int | None = None) -> float:
         """hidden_feature_grad until feature_grad_until of the run, 0 after it."""

@@ -1,0 +1,78 @@
+"""The box frame's private decoding replayed from CUDA graphs (secure.captured) renders and
+differentiates as the same decoding op by op. The comparison needs CUDA (SECUREGS_TEST_DEVICE=cuda
+on a GPU machine); on the CPU the option leaves training unchanged and the graphs refuse CPU tensors."""
+import pytest
+import torch
+
+from securegs_warp.config import SecureConfig, apply_overrides
+from securegs_warp.data import make_synthetic_scene
+from securegs_warp.raster_cases import TEST_DEVICE
+from securegs_warp.rasterizer import RasterOptions
+from securegs_warp.secure import SecureTrainer
+from securegs_warp.secure.captured import CapturedRows
+from securegs_warp.train import TrainConfig
+
+
+def _trainer(device, capture=True, serving=60):
+    scene = make_synthetic_scene(hidden="mug", level="object", width=96, height=72, n_train=4, n_test=1,
+                                 n_points=600, device=device)
+    secure = apply_overrides(SecureConfig(payload="object"), {"strategy.mode": "cover", "hidden_offsets": 4,
+                                                              "hidden_width": 16, "hidden_anchors": serving,
+                                                              "hidden_capture": capture})
+    torch.manual_seed(0)
+    return SecureTrainer(scene, TrainConfig(iterations=10, seed=0, raster=RasterOptions(tile_size=8)), secure,
+                         device=device)
+
+
+def _render_and_grads(t, capture, weights):
+    """The hidden render of training view 1 and the gradients of sum(weights · image) with respect
+    to the anchor features and scalings and to the private heads' parameters."""
+    for p in t.model.parameters():
+        p.grad = None
+    out = t.model.render_hidden(t.scene.train[1], t.config.raster, background=t.payloads[0].background,
+                                feature_grad=0.1, capture=capture)
+    (out["image"] * weights).sum().backward()
+    private = t.model.secrets[0]
+    named = {"feat": t.model.anchors.feat, "scaling": t.model.anchors.scaling,
+             **{"private." + n: p for n, p in private.named_parameters()}}
+    return out["image"].detach().clone(), {n: (None if p.grad is None else p.grad.clone()) for n, p in named.items()}
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
+def test_the_replayed_decoding_renders_and_differentiates_as_the_eager_one():
+    t = _trainer("cuda")
+    for _ in range(3):
+        t.step()
+    weights = torch.rand(t.scene.train[1].height, t.scene.train[1].width, 3, device="cuda")
+    for round_ in range(3):  # capture, replay, and replay after the parameters moved in place
+        eager_image, eager = _render_and_grads(t, False, weights)
+        image, replayed = _render_and_grads(t, True, weights)
+        assert (image - eager_image).abs().max() < 1e-5, round_
+        for name, g in eager.items():
+            assert (g is None) == (replayed[name] is None), name
+            if g is not None:
+                scale = g.abs().max().clamp_min(1e-12)
+                assert ((replayed[name] - g).abs().max() / scale) < 1e-4, (round_, name)
+        with torch.no_grad():
+            for p in t.model.secrets[0].parameters():
+                p.add_(0.01 * torch.randn_like(p))
+    # Training steps with the graphs keep the model finite and the hidden branch learning.
+    before = t.evaluate_hidden()["psnr_hidden"]
+    for _ in range(5):
+        t.step()
+    assert torch.isfinite(t.model.anchors.feat).all()
+    assert t.evaluate_hidden()["psnr_hidden"] > before - 1.0
+
+
+def test_on_the_cpu_the_option_renders_op_by_op():
+    t = _trainer("cpu")
+    weights = torch.rand(t.scene.train[1].height, t.scene.train[1].width, 3)
+    image, grads = _render_and_grads(t, True, weights)
+    eager_image, eager = _render_and_grads(t, False, weights)
+    assert torch.equal(image, eager_image)
+    assert all(torch.equal(grads[n], g) for n, g in eager.items() if g is not None)
+    assert not t.model._captured
+    rows = CapturedRows(t.model.secrets[0])
+    x = torch.zeros(2, 3)
+    with pytest.raises(ValueError, match="CUDA graphs"):
+        rows(x, torch.zeros(2, 32), torch.zeros(2, 6), torch.zeros(3))
