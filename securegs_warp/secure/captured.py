@@ -60,6 +60,12 @@ class CapturedRows:
         if entry is None or len(entry[0]) != len(sources) or any(a is not b for a, b in zip(entry[0], sources)):
             samples = (xyz.detach().clone(), feat.detach().clone().requires_grad_(feat.requires_grad),
                        log_scaling.detach().clone().requires_grad_(log_scaling.requires_grad), centre.detach().clone())
+            # The capture's warm-up runs on a side stream, where the parameters' gradient
+            # accumulators are made; later backwards feed them from torch's current stream, which
+            # torch orders with a wait between the streams on the device (not the host) and warns
+            # of at the first backward. The switch is process-wide, as torch offers it.
+            if hasattr(torch.autograd.graph, "set_warn_on_accumulate_grad_stream_mismatch"):
+                torch.autograd.graph.set_warn_on_accumulate_grad_stream_mismatch(False)
             entry = (sources, torch.cuda.make_graphed_callables(_Rows(self.private), samples,
                                                                 allow_unused_input=True))
             self._graphs[key] = entry
