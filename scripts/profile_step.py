@@ -59,10 +59,9 @@ def main():
     trainers = {"Scaffold-GS": lambda: ScaffoldTrainer(scene, config, device=args.device)}
     for mode in modes:
         try:
-            _, secure = compare.parse_variant(mode, SecureConfig(payload=args.payload))
+            label, secure = compare.parse_variant(mode, SecureConfig(payload=args.payload))
         except ValueError as e:
             parser.error(str(e))
-        label = "SecureGS" if len(modes) == 1 else f"SecureGS {mode}"
         trainers[label] = functools.partial(SecureTrainer, scene, config, secure, device=args.device)
     results, counts = {}, {}
     for label, make in trainers.items():

@@ -243,9 +243,10 @@ class SecureConfig:
         this is the knob that trades hidden fidelity for training time (docs/results.md, "The hidden
         stride"). The private heads take one Adam step per hidden step; the RDO mode gathers ∇_hid
         on the steps that are multiples of both this and its own ``hidden_every``.
-    hidden_capture: on CUDA, a box-frame key's decoding of its serving anchors is replayed from
-        CUDA graphs during training (``secure.captured``): the same values up to float rounding,
-        for a fraction of the host work. Off: decoded op by op, as on the CPU.
+    hidden_capture: on CUDA, a box-frame key's decoding of its serving anchors (``hidden_anchors``
+        > 0) is replayed from CUDA graphs during training (``secure.captured``): the same values up
+        to float rounding, for a fraction of the host work. Robust training's attacked anchors,
+        evaluation (no gradients) and the CPU decode op by op, as everything does with it off.
     """
 
     payload: str = "object+bits:48"

@@ -18,11 +18,11 @@ and a busy entry makes the pool build another.
 from __future__ import annotations
 
 import collections
-import weakref
 
 import torch
 import warp as wp
 
+from .lease import Lease
 from .rasterizer import OUTPUT_NAMES, RasterOptions, RenderPlan, check_finite
 
 # Capacity = HEADROOM × the first render's intersections + SLACK: room for the scene to move.
@@ -141,22 +141,6 @@ class _Captured:
         return [g.clone() for g in self.plan.grads], self.plan.means2d_grad.clone()
 
 
-class _Lease:
-    """Keeps an entry busy while an autograd graph may still run its backward."""
-
-    def __init__(self, entry: _Captured):
-        self.entry = entry
-        entry.busy = True
-        self._finalizer = weakref.finalize(self, _release, entry)
-
-    def release(self):
-        self._finalizer()
-
-
-def _release(entry: _Captured):
-    entry.busy = False
-
-
 def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Captured:
     means, colors = inputs["means"], inputs["colors"]
     key = (str(means.device), means.shape[0], colors.shape[1], width, height, opts)
@@ -180,7 +164,7 @@ class _CapturedRasterize(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, colors, background, inputs, width, height, opts, info, finite):
         wp.init()
         entry = _acquire(inputs, width, height, opts)
-        lease = _Lease(entry)
+        lease = Lease(entry)
         try:
             outputs = entry.forward(inputs, finite)
         except BaseException:

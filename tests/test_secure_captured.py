@@ -44,7 +44,8 @@ def test_the_replayed_decoding_renders_and_differentiates_as_the_eager_one():
     for _ in range(3):
         t.step()
     weights = torch.rand(t.scene.train[1].height, t.scene.train[1].width, 3, device="cuda")
-    for round_ in range(3):  # capture, replay, and replay after the parameters moved in place
+    assert t.model._captured[0]._graphs, "training on CUDA did not take the replayed path"
+    for round_ in range(3):  # replays, the last after the parameters moved in place
         eager_image, eager = _render_and_grads(t, False, weights)
         image, replayed = _render_and_grads(t, True, weights)
         assert (image - eager_image).abs().max() < 1e-5, round_
@@ -72,7 +73,80 @@ def test_on_the_cpu_the_option_renders_op_by_op():
     assert torch.equal(image, eager_image)
     assert all(torch.equal(grads[n], g) for n, g in eager.items() if g is not None)
     assert not t.model._captured
-    rows = CapturedRows(t.model.secrets[0])
-    x = torch.zeros(2, 3)
-    with pytest.raises(ValueError, match="CUDA graphs"):
-        rows(x, torch.zeros(2, 32), torch.zeros(2, 6), torch.zeros(3))
+
+
+class _FakeGraphs:
+    """Stands in for torch.cuda.make_graphed_callables on the CPU: counts captures and replays,
+    and runs the module op by op, so that CapturedRows' rules can be checked without a GPU."""
+
+    def __init__(self):
+        self.captures = self.replays = 0
+
+    def __call__(self, module, samples, allow_unused_input=False):
+        self.captures += 1
+        forward = module.forward
+
+        def replay(*args):
+            self.replays += 1
+            return forward(*args)
+        module.forward = replay
+        return module
+
+
+@pytest.fixture
+def rows(monkeypatch):
+    fake = _FakeGraphs()
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", fake)
+    t = _trainer("cpu")
+    private = t.model.secrets[0]
+    xyz = t.model.anchors.xyz[:7].detach()
+    feat = t.model.anchors.feat[:7].detach().requires_grad_(True)
+    log_scaling = t.model.anchors.scaling[:7].detach().requires_grad_(True)
+    return CapturedRows(private), fake, private, (xyz, feat, log_scaling, torch.zeros(3))
+
+
+def test_a_graph_decodes_the_same_rows_and_is_captured_once(rows):
+    captured, fake, private, args = rows
+    from securegs_warp.model.neural_gaussians import decode_rows
+    want = decode_rows(private.decoder, private.hidden_offsets, *args)
+    for _ in range(3):
+        got = captured(*args)
+        assert all(torch.equal(a, b) for a, b in zip(got, want))
+        sum(o.sum() for o in got).backward()
+        for p in private.parameters():
+            p.grad = None
+    assert (fake.captures, fake.replays) == (1, 3)
+
+
+def test_a_second_call_before_the_backward_decodes_op_by_op(rows):
+    captured, fake, private, args = rows
+    first = captured(*args)
+    second = captured(*args)  # the graph's buffers still hold the first call's activations
+    assert fake.replays == 1
+    sum(o.sum() for o in first).backward()
+    for p in private.parameters():
+        p.grad = None
+    captured(*args)
+    assert fake.replays == 2
+    del second
+
+
+def test_a_call_whose_outputs_are_dropped_frees_its_graph(rows):
+    captured, fake, private, args = rows
+    out = captured(*args)
+    del out
+    captured(*args)
+    assert fake.replays == 2
+
+
+def test_a_parameter_holding_a_gradient_or_replaced_is_not_replayed_over(rows):
+    captured, fake, private, args = rows
+    sum(o.sum() for o in captured(*args)).backward()
+    captured(*args)  # gradients not yet set to None: the replay would overwrite them
+    assert fake.replays == 1
+    for p in private.parameters():
+        p.grad = None
+    layer = private.offset_mlp[0]
+    layer.weight = torch.nn.Parameter(layer.weight.detach().clone())
+    captured(*args)
+    assert (fake.captures, fake.replays) == (2, 2)

@@ -24,14 +24,15 @@ class AnchorViewInputs:
     """What an offset source may use, for the Nv visible anchors of one view.
 
     Attributes:
-        anchor_index: [Nv] long, indices of the visible anchors in the model (None in a decoder
-            replayed from a CUDA graph, whose offset source does not read it).
+        anchor_index: [Nv] long, indices of the visible anchors in the model (None where the
+            caller's offset source does not read it).
         xyz: [Nv, 3] anchor positions.
         feat: [Nv, d] blended anchor features f̂ (the raw features when the heads have no bank).
         ob_view: [Nv, 3] unit directions camera -> anchor.
         ob_dist: [Nv, 1] camera-anchor distances.
         scaling: [Nv, 6] linear scalings ``exp(model.scaling)``.
-        offsets: [Nv, k, 3] the stored offsets ``model.offsets`` (None as ``anchor_index``).
+        offsets: [Nv, k, 3] the stored offsets ``model.offsets`` (None where the caller's offset
+            source does not read them).
     """
 
     anchor_index: torch.Tensor | None
@@ -89,6 +90,10 @@ def generate_neural_gaussians(
             f_v and scalings l_v (1: all, 0: none, between: scaled; the forward pass is unchanged).
             SecureGS's hidden pass reads these public attributes and may move them less than the
             public pass does, so that the public file is shaped mainly by the public loss.
+        rows: a ``RowDecoder`` that decodes the visible anchors' rows in place of :func:`decode_rows`
+            with ``heads``, ``offset_source`` and ``camera_index`` (which it then ignores; its k
+            must be ``heads.n_offsets``): the same decoding replayed from CUDA graphs
+            (``secure.captured``).
 
     Returns:
         dict with M kept Gaussians out of Nv * k decoded (Gaussian j of the i-th visible anchor is
@@ -146,7 +151,8 @@ def generate_neural_gaussians(
 def decode_rows(heads: ScaffoldHeads, offset_source: OffsetSource, xyz: torch.Tensor, feat: torch.Tensor,
                 log_scaling: torch.Tensor, camera_center: torch.Tensor, *, camera_index: int | None = None,
                 anchor_index: torch.Tensor | None = None, offsets: torch.Tensor | None = None) -> tuple:
-    """Every one of the k Gaussians of each of Nv anchors, before the opacity test: a ``RowDecoder``.
+    """Every one of the k Gaussians of each of Nv anchors, before the opacity test (with ``heads``
+    and ``offset_source`` bound, a ``RowDecoder``).
 
     Args:
         heads, offset_source, camera_index: as ``generate_neural_gaussians``.
