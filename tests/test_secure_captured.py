@@ -150,3 +150,20 @@ def test_a_parameter_holding_a_gradient_or_replaced_is_not_replayed_over(rows):
     layer.weight = torch.nn.Parameter(layer.weight.detach().clone())
     captured(*args)
     assert (fake.captures, fake.replays) == (2, 2)
+
+
+def test_training_replays_the_decoder_at_every_hidden_step(monkeypatch):
+    """The rules' guards must not turn training itself back to op by op: with the graphs standing
+    in, every training step's hidden render is a replay."""
+    from securegs_warp.secure import captured
+    fake = _FakeGraphs()
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", fake)
+    monkeypatch.setattr(captured, "replayable", lambda t: True)
+    op_by_op = []
+    decode = captured.decode_rows
+    monkeypatch.setattr(captured, "decode_rows", lambda *a, **k: op_by_op.append(1) or decode(*a, **k))
+    t = _trainer("cpu")
+    for _ in range(12):  # past feature_grad_until: the features' gradient share drops to 0, a new shape
+        t.step()
+    assert fake.replays == 12 and len(op_by_op) == fake.replays
+    assert fake.captures == 2

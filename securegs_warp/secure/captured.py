@@ -37,6 +37,11 @@ MAX_SHAPES = 4
 warnings.filterwarnings("ignore", message=r"The AccumulateGrad node's stream does not match")
 
 
+def replayable(t: torch.Tensor) -> bool:
+    """Whether CUDA graphs can decode rows on ``t``'s device."""
+    return t.is_cuda
+
+
 class _Rows(nn.Module):
     """``decode_rows`` with a key's private heads: their parameters are what the captured backward
     differentiates (the key's buffers are no inputs of a graph)."""

@@ -10,7 +10,7 @@ from ..model.neural_gaussians import AnchorViewInputs, visible_anchor_mask
 from ..rasterizer import RasterOptions
 from ..render import camera_tensors, render_view
 from ..scaffold_model import ScaffoldModel, decode_all
-from .captured import CapturedRows
+from . import captured
 from .heads import PrivateHeads
 
 
@@ -23,7 +23,7 @@ class SecureModel(ScaffoldModel):
     def __init__(self, anchors: AnchorModel, heads: ScaffoldHeads, secrets: list[PrivateHeads]):
         super().__init__(anchors, heads)
         self.secrets = nn.ModuleList(secrets)
-        self._captured: dict[int, CapturedRows] = {}  # per secret, while its heads are the same object
+        self._captured: dict[int, captured.CapturedRows] = {}  # per secret, while its heads are the same object
 
     @property
     def private(self) -> PrivateHeads | None:
@@ -64,9 +64,9 @@ class SecureModel(ScaffoldModel):
         own = anchors is None
         anchors = self.anchors if anchors is None else anchors
         rows = None
-        if capture and own and private.serves_by_radius and anchors.xyz.is_cuda and torch.is_grad_enabled():
+        if capture and own and private.serves_by_radius and captured.replayable(anchors.xyz) and torch.is_grad_enabled():
             if secret not in self._captured or self._captured[secret].private is not private:
-                self._captured[secret] = CapturedRows(private)
+                self._captured[secret] = captured.CapturedRows(private)
             rows = self._captured[secret]
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
