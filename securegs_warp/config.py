@@ -382,10 +382,13 @@ class SceneSpec:
         for name in ("width", "height", "n_train", "n_test", "downscale"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.hidden_position is not None and len(self.hidden_position) != 3:
-            raise ValueError(f"hidden_position must be x,y,z, got {self.hidden_position}")
-        if not self.hidden_size > 0:
-            raise ValueError(f"hidden_size must be > 0, got {self.hidden_size}")
+        if self.hidden_position is not None and (len(self.hidden_position) != 3
+                                                 or not all(math.isfinite(v) for v in self.hidden_position)):
+            raise ValueError(f"hidden_position must be x,y,z (finite), got {self.hidden_position}")
+        if not (self.hidden_size > 0 and math.isfinite(self.hidden_size)):
+            raise ValueError(f"hidden_size must be > 0 and finite, got {self.hidden_size}")
+        if not math.isfinite(self.hidden_yaw):
+            raise ValueError(f"hidden_yaw must be finite (degrees), got {self.hidden_yaw}")
         if Path(self.source).is_dir() and not Path(self.source).is_absolute():
             object.__setattr__(self, "source", str(Path(self.source).resolve()))
 

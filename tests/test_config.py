@@ -63,7 +63,10 @@ def test_overrides_convert_and_check_values():
                                ({"iterations": "2.5"}, "not a valid int"),
                                ({"tile_size": "12"}, "tile_size must be 8, 16 or 32"),
                                ({"hdger": "maybe"}, "not a valid bool"),
-                               ({"nonsense": 1}, "unknown option 'nonsense'")):
+                               ({"nonsense": 1}, "unknown option 'nonsense'"),
+                               ({"scene.hidden_yaw": "inf"}, "hidden_yaw must be finite"),
+                               ({"scene.hidden_size": "nan"}, "hidden_size must be > 0 and finite"),
+                               ({"scene.hidden_position": "0,0,inf"}, r"hidden_position must be x,y,z \(finite\)")):
         with pytest.raises(ValueError, match=message):
             apply_overrides(RunConfig(secure=SecureConfig()), overrides)
 

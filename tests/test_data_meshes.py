@@ -122,6 +122,10 @@ def test_load_errors(tmp_path):
     (tmp_path / "lines.obj").write_text("v 0 0 0\nv 1 0 0\nl 1 2\n")
     with pytest.raises(DataError, match="lines.obj: the file holds no triangles"):
         load_mesh(tmp_path / "lines.obj")
+    for name, vertices in (("collinear", "v 0 0 0\nv 1 0 0\nv 2 0 0\n"), ("collapsed", "v 1 1 1\n" * 3)):
+        (tmp_path / f"{name}.obj").write_text(vertices + "f 1 2 3\n")
+        with pytest.raises(DataError, match=f"{name}.obj: the mesh's triangles have no area"):
+            load_mesh(tmp_path / f"{name}.obj")
 
 
 def test_unknown_texture():

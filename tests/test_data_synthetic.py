@@ -168,6 +168,12 @@ def test_user_mesh_and_placement(tmp_path):
         make_synthetic_scene(hidden=str(tmp_path / "tetra.obj"), hidden_up="x", **SMALL)
     with pytest.raises(DataError, match="hidden_up 'y' turns a mesh file"):
         make_synthetic_scene(hidden="mug", hidden_up="y", **SMALL)
+    # Placed where no training camera sees it, or too small to cover a pixel: refused, not hidden
+    # as blank targets that every render matches.
+    for where in ({"hidden_position": (100.0, 0.0, 0.0)}, {"hidden_position": (0.0, 0.0, -50.0)},
+                  {"hidden_size": 1e-4}):
+        with pytest.raises(DataError, match="covers no pixel of the .* training views"):
+            make_synthetic_scene(hidden=str(tmp_path / "tetra.obj"), **where, **SMALL)
 
 
 def test_bad_arguments():

@@ -322,7 +322,7 @@ def load_mesh(path, material: Material | None = None, up: str = "z") -> TriMesh:
     textures it. up: the file's up axis (UP_AXES), turned onto the scenes' +z: none of these formats
     records it, and glTF and many OBJ exporters (and scanned meshes such as the Stanford bunny)
     use +y. Raises DataError naming the file when it is missing, of an unsupported type,
-    unreadable, or holds no triangles, or naming an unknown up axis.
+    unreadable, or holds no triangles or only triangles without area, or naming an unknown up axis.
     """
     import trimesh
 
@@ -338,6 +338,10 @@ def load_mesh(path, material: Material | None = None, up: str = "z") -> TriMesh:
         raise DataError(f"{path}: cannot read mesh ({type(error).__name__}: {error})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise DataError(f"{path}: the file holds no triangles")
+    # The hidden views are ray-cast and its surface is sampled by area: a mesh of zero area (all
+    # triangles collinear or collapsed) shows nothing and has no surface to sample.
+    if not float(loaded.area) > 0.0:
+        raise DataError(f"{path}: the mesh's triangles have no area (every one is collinear or collapsed)")
 
     colors = None
     if material is None and loaded.visual.kind in ("vertex", "face", "texture"):

@@ -318,6 +318,17 @@ def _check_arguments(width, height, n_train, n_test, n_points, supersample, fov_
     return counts
 
 
+def _in_view(camera: Camera, points: np.ndarray) -> bool:
+    """Whether any of ``points`` [P, 3] (world) projects in front of ``camera`` and onto its image."""
+    p = points @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
+    front = p[:, 2] > 1e-6
+    if not front.any():
+        return False
+    uv = p[front] @ camera.K.T
+    u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    return bool(((u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)).any())
+
+
 def make_synthetic_scene(
     name: str = "default",
     hidden: str | TriMesh | None = None,
@@ -404,6 +415,16 @@ def make_synthetic_scene(
     for camera in train + test:
         view = hidden_renderer.render(camera, payload.lighting, payload.background, supersample)
         camera.hidden, camera.hidden_alpha = view.image()
+    # An object no training view shows (placed outside the cameras' sight, or too small to cover a
+    # pixel) leaves the hidden targets blank: refused, rather than trained on and scored as perfect.
+    # Alone ("object" level) its own alpha says it; composited, whether it projects into a view.
+    shown = ([float(c.hidden_alpha.max()) >= 1.0 / 255.0 for c in train] if level == "object"
+             else [_in_view(c, payload.geometry.vertices) for c in train])
+    if payload.kind == "object" and not any(shown):
+        low, high = payload.geometry.bounds
+        raise DataError(f"the hidden object ({payload.name}, bounds {np.round(low.astype(float), 2).tolist()} to "
+                        f"{np.round(high.astype(float), 2).tolist()}) covers no pixel of the {n_train} training views: nothing "
+                        "of it could be hidden; place it where the cameras look (hidden_position, hidden_size)")
     scene.hidden_kind, scene.hidden_level, scene.hidden_name = payload.kind, payload.level, payload.name
     scene.hidden_background = np.asarray(payload.background, dtype=np.float32)
     scene.hidden_bbox = payload.geometry.bounds
