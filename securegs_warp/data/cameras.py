@@ -257,7 +257,9 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     try:
         raw = iio.imread(path)
     except Exception as error:  # imageio raises many types for undecodable files; report them all alike
-        raise DataError(f"{path}: cannot read image ({error})") from None
+        # imageio appends plugin install hints on further lines: the first line names the problem.
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise DataError(f"{path}: cannot read image ({reason})") from None
     scale = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else 1.0
     pixels = raw.astype(np.float32) / scale
     if pixels.ndim == 2:
