@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from securegs_warp.compare import BASELINE, SCENE_ARRAYS, read_report
+from securegs_warp.compare import BASELINE, SCENE_AND_BUDGET, SCENE_ARRAYS, read_report
 from securegs_warp.secure.steganalysis import auc_by_model
 
-# What makes folders one run: the same scene, hidden object, seed and budget.
-RUN_KEYS = ("hidden", "placement", "seed", "width", "height", "iterations")
+# What makes folders one run: the same scene, hidden object and budget, and the same seed.
+RUN_KEYS = SCENE_AND_BUDGET + ("seed",)
 
 
 def models(arrays: dict) -> dict:

@@ -16,14 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from securegs_warp.compare import BASELINE, density_ratio, read_report
+from securegs_warp.compare import BASELINE, SCENE_AND_BUDGET, density_ratio, read_report
 from securegs_warp.secure import steganalysis
 from securegs_warp.secure.security import plot_anchor_clouds
 
 
 # What must agree between a baseline's run and a container's for one to be scored against the other
 # (the seed may differ: a plain model of another seed gives the measures' own spread).
-SAME = ("width", "height", "iterations", "hidden", "placement", "exposure_radius")
+SAME = SCENE_AND_BUDGET + ("exposure_radius",)
 
 
 def load(folder: Path) -> tuple[dict, dict]:

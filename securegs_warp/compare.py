@@ -25,6 +25,9 @@ from .secure.security import exposure
 from .strategies import MODES
 
 BASELINE = "Scaffold-GS baseline"
+# What a secure_vs_baseline.py report's meta says of its scene and budget: runs that agree on all
+# of them were trained on the same views for as long (the seed may differ).
+SCENE_AND_BUDGET = ("hidden", "placement", "width", "height", "iterations")
 # anchor_clouds.npz holds the scene's points beside the models' anchors (for the plots); not models.
 SCENE_ARRAYS = ("hidden_points", "scene_points")
 COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",

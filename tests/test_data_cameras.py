@@ -154,3 +154,12 @@ def test_camera_record_with_a_bad_pose_is_a_data_error():
     record["viewmat"][0] *= 3  # scales the rotation's first row
     with pytest.raises(DataError, match=r"camera 'c\.png': viewmat's 3x3 block is not a rotation"):
         Camera.from_record(record)
+
+
+def test_project_maps_the_target_to_the_principal_point_and_reports_depth():
+    K = intrinsics_from_fov(60.0, 64, 48)
+    camera = Camera("c", look_at((3.0, 0.0, 1.0), (0.0, 0.0, 1.0)), K, 64, 48)
+    uv, depth = camera.project(np.array([[0.0, 0.0, 1.0], [6.0, 0.0, 1.0], [0.0, 0.0, 2.0]]))
+    np.testing.assert_allclose(uv[0], K[:2, 2], atol=1e-6)
+    np.testing.assert_allclose(depth[:2], [3.0, -3.0], atol=1e-6)  # in front; behind the camera
+    assert uv[2, 1] < K[1, 2]  # higher in the world is higher in the image (OpenCV: v grows downwards)

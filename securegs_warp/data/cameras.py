@@ -121,6 +121,16 @@ class Camera:
         rotation, translation = self.viewmat[:3, :3].astype(np.float64), self.viewmat[:3, 3].astype(np.float64)
         return (-rotation.T @ translation).astype(np.float32)
 
+    def project(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates [P, 2] and depths [P] (camera z) of world points [P, 3], in float64.
+        A point at or behind the camera (depth <= 0) has no meaningful pixel: check the depth."""
+        viewmat, K = self.viewmat.astype(np.float64), self.K.astype(np.float64)
+        p = np.asarray(points, dtype=np.float64) @ viewmat[:3, :3].T + viewmat[:3, 3]
+        depth = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = np.stack([K[0, 0] * p[:, 0] / depth + K[0, 2], K[1, 1] * p[:, 1] / depth + K[1, 2]], axis=1)
+        return uv, depth
+
     def to_record(self) -> dict:
         """The camera without its images, as JSON-able values (a key stores the cameras it reveals with)."""
         return {"name": self.name, "viewmat": self.viewmat.reshape(-1).tolist(), "K": self.K.reshape(-1).tolist(),

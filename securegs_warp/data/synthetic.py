@@ -320,12 +320,8 @@ def _check_arguments(width, height, n_train, n_test, n_points, supersample, fov_
 
 def _in_view(camera: Camera, points: np.ndarray) -> bool:
     """Whether any of ``points`` [P, 3] (world) projects in front of ``camera`` and onto its image."""
-    p = points @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
-    front = p[:, 2] > 1e-6
-    if not front.any():
-        return False
-    uv = p[front] @ camera.K.T
-    u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    uv, depth = camera.project(points)
+    u, v = uv[depth > 0].T
     return bool(((u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)).any())
 
 

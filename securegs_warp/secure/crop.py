@@ -46,13 +46,10 @@ def box_crop(camera: Camera, box: np.ndarray, tile: int) -> Crop | None:
     centre, half = np.asarray(box, dtype=np.float64)
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
     corners = centre + signs * half  # [8, 3]
-    viewmat = camera.viewmat.astype(np.float64)
-    cam = corners @ viewmat[:3, :3].T + viewmat[:3, 3]
-    if (cam[:, 2] <= NEAR).any():
+    uv, depth = camera.project(corners)
+    if (depth <= NEAR).any():
         return None
-    K = camera.K.astype(np.float64)
-    u = K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]
-    v = K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]
+    u, v = uv[:, 0], uv[:, 1]
     margin = MARGIN_PX + MARGIN_SHARE * max(u.max() - u.min(), v.max() - v.min())
     # On the view's tile grid, the crop's tiles are the view's own: each holds the same pixels and
     # Gaussians, so the crop does the view's work on those tiles and no more.
