@@ -150,3 +150,18 @@ def test_scaled_gradient_is_the_detach_formula():
         ref_grad, = torch.autograd.grad(reference, x, upstream)
         assert torch.equal(grad, ref_grad)
     assert scale_gradient(x, 1.0) is x and not scale_gradient(x, 0.0).requires_grad
+
+
+def test_uncompacted_rows_hold_the_kept_gaussians_and_zero_opacity_elsewhere():
+    model, heads = tiny_model_and_heads()
+    cam = torch.tensor([0.3, -2.0, 5.0])
+    visible = torch.tensor([True, False, True])
+    kept = generate_neural_gaussians(model, heads, cam, visible)
+    rows = generate_neural_gaussians(model, heads, cam, visible, anchor_index=torch.tensor([0, 2]), compact=False)
+    assert rows["means"].shape == (4, 3) and torch.equal(rows["kept"], rows["mask"])
+    assert torch.equal(rows["anchor_index"], torch.tensor([0, 0, 2, 2]))
+    for key in ("means", "quats", "scales", "colors", "opacities"):
+        assert torch.equal(rows[key][rows["kept"]], kept[key]), key
+    assert torch.equal(rows["opacities"][~rows["kept"]], torch.zeros(2))
+    from securegs_warp.train import volume_loss
+    assert torch.allclose(volume_loss(rows["scales"], rows["kept"]), volume_loss(kept["scales"]))

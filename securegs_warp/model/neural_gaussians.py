@@ -69,6 +69,8 @@ def generate_neural_gaussians(
     feature_grad: float = 1.0,
     scaling_grad: float = 1.0,
     rows: RowDecoder | None = None,
+    anchor_index: torch.Tensor | None = None,
+    compact: bool = True,
 ) -> dict[str, torch.Tensor]:
     """Decode the visible anchors into the Gaussians of one view, exactly as Scaffold-GS does.
 
@@ -94,6 +96,12 @@ def generate_neural_gaussians(
             with ``heads``, ``offset_source`` and ``camera_index`` (which it then ignores; its k
             must be ``heads.n_offsets``): the same decoding replayed from CUDA graphs
             (``secure.captured``).
+        anchor_index: [Nv] long, the indices of ``visible_mask``'s True entries when the caller
+            keeps them (finding them reads a count back from the device: a host synchronisation).
+        compact: False returns every decoded row (M = Nv * k), those that fail the opacity test at
+            opacity 0, which the rasterizer leaves out of the image as it leaves out any Gaussian
+            below its alpha_min: the same render and gradients without the host synchronisation that
+            counts the kept rows, for a caller that reads no per-Gaussian statistics of them.
 
     Returns:
         dict with M kept Gaussians out of Nv * k decoded (Gaussian j of the i-th visible anchor is
@@ -107,6 +115,8 @@ def generate_neural_gaussians(
           opacity statistics).
         * ``mask`` [Nv * k] bool: opacity > 0, which of the decoded Gaussians were kept.
         * ``visible_mask`` [N] bool: the anchors decoded.
+        * ``kept`` [M] bool, only with ``compact=False``: the rows that passed the opacity test
+          (``mask``), which Scaffold-GS's volume regulariser averages over.
     """
     # Heads with their own offset source may decode another number of Gaussians per anchor (a
     # private decoder's k_hid); the stored offsets fit only the anchors' own k.
@@ -118,7 +128,8 @@ def generate_neural_gaussians(
     device = model.xyz.device
     if visible_mask is None:
         visible_mask = torch.ones(model.num_anchors, dtype=torch.bool, device=device)
-    anchor_index = visible_mask.nonzero()[:, 0]
+    if anchor_index is None:
+        anchor_index = visible_mask.nonzero()[:, 0]
     k = heads.n_offsets
 
     xyz = model.xyz[anchor_index]
@@ -132,6 +143,11 @@ def generate_neural_gaussians(
         neural_opacity, means, quats, scales, colors = rows(xyz, feat, log_scaling, camera_center.to(xyz))
 
     mask = neural_opacity > 0.0
+    if not compact:
+        return {"means": means, "quats": quats, "scales": scales,
+                "opacities": torch.where(mask, neural_opacity, torch.zeros_like(neural_opacity)), "colors": colors,
+                "anchor_index": anchor_index.repeat_interleave(k), "neural_opacity": neural_opacity, "mask": mask,
+                "visible_mask": visible_mask, "kept": mask}
     # The kept rows found once (one host synchronisation; each boolean-mask index costs one).
     kept = mask.nonzero()[:, 0]
     return {

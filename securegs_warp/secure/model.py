@@ -45,7 +45,7 @@ class SecureModel(ScaffoldModel):
     def render_hidden(self, camera, options: RasterOptions | None = None, *, background: torch.Tensor | None = None,
                       camera_index: int | None = None, feature_grad: float = 1.0, scaling_grad: float = 1.0,
                       anchors=None, secret: int = 0, visible: torch.Tensor | None = None,
-                      capture: bool = False) -> dict:
+                      capture: bool = False, compact: bool = True) -> dict:
         """Secret ``secret``'s hidden render of a view (as ``ScaffoldModel.render``); needs its key.
 
         feature_grad, scaling_grad: the share of this render's gradient that reaches the public
@@ -56,6 +56,9 @@ class SecureModel(ScaffoldModel):
         when the caller has them already (the public render of the same view): not computed again.
         capture: decode from CUDA graphs (``CapturedRows``) where that gives the same render: this
         model's own anchors on CUDA, a box-frame key decoding its serving anchors, gradients enabled.
+        compact: False renders the Gaussians that fail the opacity test at opacity 0 instead of
+        leaving them out (the same image and gradients, without a host synchronisation; the
+        Gaussians' per-row statistics then count them, see ``generate_neural_gaussians``).
         """
         private = self._key(secret)
         if private.decoder is None:
@@ -68,25 +71,28 @@ class SecureModel(ScaffoldModel):
             if secret not in self._captured or self._captured[secret].private is not private:
                 self._captured[secret] = captured.CapturedRows(private)
             rows = self._captured[secret]
+        mask, index = self._decoding_rows(private, anchors, camera, visible)
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
-                           anchor_mask=self._decoding_mask(private, anchors, camera, visible), rows=rows)
+                           anchor_mask=mask, anchor_index=index, rows=rows, compact=compact)
 
-    def _decoding_mask(self, private: PrivateHeads, anchors, camera,
-                       visible: torch.Tensor | None = None) -> torch.Tensor | None:
-        """[N] bool, the anchors whose hidden Gaussians ``private`` decodes for ``camera``: the box
-        frame's serving anchors, else the visible ones (None: render_view's visibility test), less
-        those robust training drops (``PerturbedAnchors.keep``)."""
-        mask = private.serving_mask(anchors.xyz)
-        if mask is None:
-            mask = visible
+    def _decoding_rows(self, private: PrivateHeads, anchors, camera,
+                       visible: torch.Tensor | None = None) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """([N] bool or None, [Nv] long or None): the anchors whose hidden Gaussians ``private``
+        decodes for ``camera`` (the box frame's serving anchors, else the visible ones; None:
+        render_view's visibility test), less those robust training drops
+        (``PerturbedAnchors.keep``), and their indices where the key keeps them (else None)."""
+        serving = private.serving_rows(anchors.xyz)
         keep = getattr(anchors, "keep", None)
+        if serving is not None and keep is None:
+            return serving
+        mask = visible if serving is None else serving[0]
         if keep is None:
-            return mask
+            return mask, None
         if mask is None:
             viewmat, K = camera_tensors(camera, anchors.xyz.device)
             mask = visible_anchor_mask(anchors, viewmat, K, camera.width, camera.height)
-        return mask & keep
+        return mask & keep, None
 
     @torch.no_grad()
     def hidden_gaussians(self, camera, secret: int = 0) -> dict:

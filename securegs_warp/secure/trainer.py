@@ -126,11 +126,14 @@ class SecureTrainer(ScaffoldTrainer):
                       anchors=None, secret: int = 0, visible: torch.Tensor | None = None) -> dict:
         """Secret ``secret``'s hidden render of a view, with the gradient shares of training
         ``step`` (default: the step counter); ``anchors``: robust training's perturbed anchors;
-        ``visible``: see ``SecureModel.render_hidden``."""
+        ``visible``: see ``SecureModel.render_hidden``. The Gaussians that fail the opacity test stay
+        in the render at opacity 0 unless the strategy reads the hidden Gaussians row by row (a host
+        synchronisation fewer per render)."""
         return self.model.render_hidden(cam, self.config.raster, background=self.payloads[secret].background,
                                         camera_index=camera_index, feature_grad=self.current_feature_grad(step),
                                         scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors, secret=secret,
-                                        visible=visible, capture=self.secure.hidden_capture)
+                                        visible=visible, capture=self.secure.hidden_capture,
+                                        compact=self.strategy.reads_hidden)
 
     def current_feature_grad(self, step: int | None = None) -> float:
         """hidden_feature_grad until feature_grad_until of the run, 0 after it."""

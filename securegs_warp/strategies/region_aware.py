@@ -83,6 +83,12 @@ class RegionAwareStrategy(ScaffoldStrategy):
         state["bbox"] = torch.full((6,), float("nan"), device=model.xyz.device)  # min xyz, max xyz
         return state
 
+    @property
+    def reads_hidden(self) -> bool:
+        """Whether ``step_post_backward`` reads the hidden renders' Gaussians (their opacities and
+        gradients per row); the cover mode grows and prunes by the public render alone."""
+        return self.mode != "cover"
+
     def step_post_backward(self, model, optimizer, state, step, branches: dict, generator=None):
         """branches: ``"public"``: (gaussians, info), and, when the step rendered hidden views,
         ``"hidden"``: a list of (gaussians, info, λ), one per secret rendered (λ: the weight of its
@@ -91,7 +97,7 @@ class RegionAwareStrategy(ScaffoldStrategy):
             return {}
         k = model.n_offsets
         self.accumulate(state, *branches["public"], k)
-        for g_hid, info_hid, weight in (branches.get("hidden", []) if self.mode != "cover" else []):
+        for g_hid, info_hid, weight in (branches.get("hidden", []) if self.reads_hidden else []):
             if self.hidden_opacity_keeps:  # an anchor that only serves the hidden branch is still useful
                 opacity = g_hid["neural_opacity"].detach().clamp_min(0.0).view(-1, k).sum(dim=1)
                 state["opacity_accum"][g_hid["visible_mask"]] += opacity

@@ -120,6 +120,10 @@ def batch_photometric_loss(images: torch.Tensor, targets: torch.Tensor, ssim_wei
     return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - batch_ssim(images, targets))
 
 
-def volume_loss(scales: torch.Tensor) -> torch.Tensor:
-    """Scaffold-GS's volume regulariser: mean over Gaussians of the product of their 3 scales."""
+def volume_loss(scales: torch.Tensor, kept: torch.Tensor | None = None) -> torch.Tensor:
+    """Scaffold-GS's volume regulariser: mean over Gaussians of the product of their 3 scales
+    [M, 3]; over the rows in ``kept`` [M] bool only, when given (an uncompacted decoding's, see
+    ``generate_neural_gaussians``), counted on the device."""
+    if kept is not None:
+        return (scales.prod(dim=1) * kept).sum() / kept.sum().clamp_min(1)
     return scales.prod(dim=1).mean() if scales.shape[0] else scales.sum()

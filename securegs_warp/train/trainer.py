@@ -93,7 +93,8 @@ class ScaffoldTrainer(ViewTrainer):
 
     def regularizer(self, out: dict) -> torch.Tensor:
         """β·volume of one render: with the photometric term, the paper's ℓ_ori and ℓ_hid."""
-        return self.config.volume_weight * volume_loss(out["gaussians"]["scales"])
+        gaussians = out["gaussians"]
+        return self.config.volume_weight * volume_loss(gaussians["scales"], gaussians.get("kept"))
 
     def densify(self, step: int, branches: dict) -> dict:
         return self.strategy.step_post_backward(self.model.anchors, self.optimizer, self.strategy_state, step,
