@@ -12,6 +12,7 @@ from securegs_warp.model import (
     visible_anchor_mask,
 )
 from securegs_warp.model.neural_gaussians import scale_gradient
+from securegs_warp.train import volume_loss
 
 
 def tiny_model_and_heads(use_feat_bank=False):
@@ -163,5 +164,4 @@ def test_uncompacted_rows_hold_the_kept_gaussians_and_zero_opacity_elsewhere():
     for key in ("means", "quats", "scales", "colors", "opacities"):
         assert torch.equal(rows[key][rows["kept"]], kept[key]), key
     assert torch.equal(rows["opacities"][~rows["kept"]], torch.zeros(2))
-    from securegs_warp.train import volume_loss
     assert torch.allclose(volume_loss(rows["scales"], rows["kept"]), volume_loss(kept["scales"]))

@@ -10,7 +10,7 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import load_scaffold
 from securegs_warp.raster_cases import TEST_DEVICE
 from securegs_warp.rasterizer import RasterOptions
-from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, photometric_loss, psnr, ssim
+from securegs_warp.train import ScaffoldStrategy, ScaffoldTrainer, TrainConfig, photometric_loss, psnr, ssim, volume_loss
 from securegs_warp.train.losses import batch_photometric_loss, batch_ssim
 from securegs_warp.train.base import nonfinite_gradient_counts
 from securegs_warp.render import camera_tensors
@@ -284,3 +284,14 @@ def test_batched_image_losses_are_the_separate_ones(tiny_scene):
     renders = [(out, target, 1.0), (small, target[:20], 0.5)]
     expected = trainer.image_loss(out, target) + 0.5 * trainer.image_loss(small, target[:20])
     assert abs(float(trainer.image_losses(renders)) - float(expected)) < 1e-6
+
+
+def test_volume_loss_is_the_mean_product_of_the_scales_with_its_gradient():
+    scales = torch.tensor([[0.5, 2.0, 3.0], [0.0, 1.5, 4.0], [1.0, 1.0, 0.25]], requires_grad=True)
+    volume_loss(scales).backward()
+    reference = scales.detach().clone().requires_grad_(True)
+    reference.prod(dim=1).mean().backward()
+    assert torch.allclose(volume_loss(scales), reference.prod(dim=1).mean())
+    assert torch.allclose(scales.grad, reference.grad)  # a zero factor included
+    kept = torch.tensor([True, False, True])
+    assert torch.allclose(volume_loss(scales, kept), reference[kept].prod(dim=1).mean())

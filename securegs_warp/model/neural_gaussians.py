@@ -108,7 +108,7 @@ def generate_neural_gaussians(
         entry ``i * k + j`` of the [Nv * k] tensors):
 
         * ``means`` [M, 3], ``quats`` [M, 4] (w first, unit), ``scales`` [M, 3] (linear; also what
-          the volume regulariser ``scales.prod(1).mean()`` uses), ``opacities`` [M] (in (0, 1)),
+          the volume regulariser ``volume_loss`` averages), ``opacities`` [M] (in (0, 1)),
           ``colors`` [M, 3]: rasterizer inputs.
         * ``anchor_index`` [M] long: the model anchor each Gaussian came from.
         * ``neural_opacity`` [Nv * k]: raw tanh opacities, negative ones included (densification's
