@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from securegs_warp.model import (
@@ -159,9 +160,16 @@ def test_uncompacted_rows_hold_the_kept_gaussians_and_zero_opacity_elsewhere():
     visible = torch.tensor([True, False, True])
     kept = generate_neural_gaussians(model, heads, cam, visible)
     rows = generate_neural_gaussians(model, heads, cam, visible, anchor_index=torch.tensor([0, 2]), compact=False)
-    assert rows["means"].shape == (4, 3) and torch.equal(rows["kept"], rows["mask"])
+    assert kept["compacted"] and not rows["compacted"]
+    assert rows["means"].shape == (4, 3) and torch.equal(rows["mask"], torch.tensor([True, False] * 2))
     assert torch.equal(rows["anchor_index"], torch.tensor([0, 0, 2, 2]))
-    for key in ("means", "quats", "scales", "colors", "opacities"):
-        assert torch.equal(rows[key][rows["kept"]], kept[key]), key
-    assert torch.equal(rows["opacities"][~rows["kept"]], torch.zeros(2))
-    assert torch.allclose(volume_loss(rows["scales"], rows["kept"]), volume_loss(kept["scales"]))
+    for key in ("means", "quats", "scales", "colors", "opacities", "anchor_index"):
+        assert torch.equal(rows[key][rows["mask"]], kept[key]), key
+    assert torch.equal(rows["opacities"][~rows["mask"]], torch.zeros(2))
+    assert torch.allclose(volume_loss(rows["scales"], rows["mask"]), volume_loss(kept["scales"]))
+
+
+def test_anchor_index_needs_the_mask_it_indexes():
+    model, heads = tiny_model_and_heads()
+    with pytest.raises(ValueError, match="visible_mask"):
+        generate_neural_gaussians(model, heads, torch.zeros(3), anchor_index=torch.tensor([0, 2]))

@@ -144,6 +144,44 @@ def test_hidden_render_of_the_public_view_reuses_its_visibility_test(hidden_scen
     assert len(calls) == 1
 
 
+@pytest.mark.parametrize("options", [{}, {"radius_rule": "3sigma", "tile_overlap": "rectangle"},
+                                     {"antialiased": True}, {"gather": "fields"}])
+def test_the_uncompacted_hidden_render_is_the_compacted_one(hidden_scene, options):
+    """The cover mode's training renders the hidden Gaussians that fail the opacity test at opacity 0
+    (no host read of how many passed): the same image and the same gradients, whatever the options
+    (the blending skips any Gaussian below alpha_min)."""
+    raster = RasterOptions(tile_size=8, **options)
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=10, raster=raster), SecureConfig(payload="object"))
+    trainer.step()
+    cam = hidden_scene.train[1]
+    weights = torch.rand(cam.height, cam.width, 3, generator=torch.Generator().manual_seed(0))
+    results = []
+    for compact in (True, False):
+        for p in trainer.model.parameters():
+            p.grad = None
+        out = trainer.render_hidden(cam, 1, compact=compact)
+        ((out["image"] * weights).sum() + trainer.regularizer(out)).backward()
+        results.append((out, {n: p.grad.clone() for n, p in trainer.model.named_parameters() if p.grad is not None}))
+    (kept, kept_grads), (rows, row_grads) = results
+    assert rows["gaussians"]["opacities"].shape[0] > kept["gaussians"]["opacities"].shape[0] > 0
+    assert torch.equal(rows["image"], kept["image"])
+    assert set(row_grads) == set(kept_grads) and "secrets.0.offset_mlp.0.weight" in kept_grads
+    for name, g in kept_grads.items():
+        assert (row_grads[name] - g).abs().max() <= 1e-5 * g.abs().max().clamp_min(1e-12), name
+
+
+@pytest.mark.parametrize("mode", ["cover", "rdo"])
+def test_training_compacts_the_hidden_render_only_where_the_strategy_reads_it(hidden_scene, mode):
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=10, raster=CPU_RASTER),
+                            SecureConfig(payload="object", strategy=RegionAwareStrategy(mode=mode)))
+    seen = []
+    render = trainer.model.render_hidden
+    trainer.model.render_hidden = lambda *a, **k: seen.append(k["compact"]) or render(*a, **k)
+    trainer.step()
+    trainer.evaluate_hidden()
+    assert seen[0] == (mode != "cover") and all(seen[1:])  # evaluation renders what a key holder renders
+
+
 def test_bits_are_decoded_exactly(trained):
     trainer, _ = trained
     assert trainer.evaluate_hidden()["bit_accuracy"] == 1.0
@@ -524,6 +562,12 @@ def test_after_update_refits_serving_and_bits_when_anchors_change(hidden_scene):
     refit = private.serving_radius.clone()
     private.fix_serving(anchors.xyz)
     assert torch.equal(refit, private.serving_radius) and not torch.equal(refit, radius)
+    # The kept indices follow the refitted mask (and a new box).
+    for _ in range(2):
+        mask = private.serving_mask(anchors.xyz)
+        assert mask.sum() == 64 and torch.equal(private.serving_index(anchors.xyz), mask.nonzero()[:, 0])
+        private.set_box(private.box[0] - 0.5, private.box[0] + 0.2)
+        private.fix_serving(anchors.xyz)
     logits, bit = private.bit_logits(anchors.feat.detach(), anchors.xyz)
     sign = trainer.payload.bits.float()[bit] * 2 - 1
     assert float((sign * logits).min()) >= trainer.secure.bit_margin - 1e-4

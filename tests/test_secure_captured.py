@@ -24,13 +24,13 @@ def _trainer(device, capture=True, serving=60):
                          device=device)
 
 
-def _render_and_grads(t, capture, weights):
+def _render_and_grads(t, capture, weights, compact=True):
     """The hidden render of training view 1 and the gradients of sum(weights · image) with respect
     to the anchor features and scalings and to the private heads' parameters."""
     for p in t.model.parameters():
         p.grad = None
     out = t.model.render_hidden(t.scene.train[1], t.config.raster, background=t.payloads[0].background,
-                                feature_grad=0.1, capture=capture)
+                                feature_grad=0.1, capture=capture, compact=compact)
     (out["image"] * weights).sum().backward()
     private = t.model.secrets[0]
     named = {"feat": t.model.anchors.feat, "scaling": t.model.anchors.scaling,
@@ -45,9 +45,9 @@ def test_the_replayed_decoding_renders_and_differentiates_as_the_eager_one():
         t.step()
     weights = torch.rand(t.scene.train[1].height, t.scene.train[1].width, 3, device="cuda")
     assert t.model._captured[0]._graphs, "training on CUDA did not take the replayed path"
-    for round_ in range(3):  # replays, the last after the parameters moved in place
-        eager_image, eager = _render_and_grads(t, False, weights)
-        image, replayed = _render_and_grads(t, True, weights)
+    for round_, compact in enumerate((True, False, True)):  # replays, the last after the parameters moved in place
+        eager_image, eager = _render_and_grads(t, False, weights, compact)
+        image, replayed = _render_and_grads(t, True, weights, compact)
         assert (image - eager_image).abs().max() < 1e-5, round_
         for name, g in eager.items():
             assert (g is None) == (replayed[name] is None), name
@@ -168,35 +168,3 @@ def test_training_replays_the_decoder_at_every_hidden_step(monkeypatch):
     assert fake.replays == 12 and len(op_by_op) == fake.replays
     assert fake.captures == 2
 
-
-def test_the_uncompacted_hidden_render_is_the_compacted_one():
-    """The cover mode's training renders the hidden Gaussians that fail the opacity test at opacity 0
-    (no host read of how many passed): the same image and the same gradients."""
-    t = _trainer("cpu", capture=False)
-    t.step()
-    cam = t.scene.train[1]
-    weights = torch.rand(cam.height, cam.width, 3)
-    results = []
-    for compact in (True, False):
-        for p in t.model.parameters():
-            p.grad = None
-        out = t.model.render_hidden(cam, t.config.raster, background=t.payloads[0].background, feature_grad=0.1,
-                                    compact=compact)
-        ((out["image"] * weights).sum() + t.regularizer(out)).backward()
-        results.append((out, {n: p.grad.clone() for n, p in t.model.named_parameters() if p.grad is not None}))
-    (kept, kept_grads), (rows, row_grads) = results
-    assert rows["gaussians"]["opacities"].shape[0] > kept["gaussians"]["opacities"].shape[0] > 0
-    assert (rows["image"] - kept["image"]).abs().max() < 1e-6
-    assert set(row_grads) == set(kept_grads)
-    for name, g in kept_grads.items():
-        assert (row_grads[name] - g).abs().max() <= 1e-5 * g.abs().max().clamp_min(1e-12), name
-    assert t.strategy.mode == "cover" and not t.strategy.reads_hidden
-
-
-def test_training_in_the_cover_mode_renders_hidden_rows_uncompacted():
-    t = _trainer("cpu", capture=False)
-    seen = []
-    render = t.model.render_hidden
-    t.model.render_hidden = lambda *a, **k: seen.append(k["compact"]) or render(*a, **k)
-    t.step()
-    assert seen == [False]

@@ -293,5 +293,14 @@ def test_volume_loss_is_the_mean_product_of_the_scales_with_its_gradient():
     reference.prod(dim=1).mean().backward()
     assert torch.allclose(volume_loss(scales), reference.prod(dim=1).mean())
     assert torch.allclose(scales.grad, reference.grad)  # a zero factor included
+
+
+def test_volume_loss_over_kept_rows_ignores_the_others_even_when_infinite():
     kept = torch.tensor([True, False, True])
-    assert torch.allclose(volume_loss(scales, kept), reference[kept].prod(dim=1).mean())
+    scales = torch.tensor([[0.5, 2.0, 3.0], [float("inf"), 1.5, 4.0], [1.0, 1.0, 0.25]], requires_grad=True)
+    volume_loss(scales, kept).backward()
+    reference = scales.detach()[kept].clone().requires_grad_(True)
+    volume_loss(reference).backward()
+    assert torch.allclose(volume_loss(scales, kept), volume_loss(reference))
+    assert torch.equal(scales.grad[~kept], torch.zeros(1, 3))
+    assert torch.allclose(scales.grad[kept], reference.grad)

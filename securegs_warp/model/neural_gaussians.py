@@ -97,26 +97,27 @@ def generate_neural_gaussians(
             must be ``heads.n_offsets``): the same decoding replayed from CUDA graphs
             (``secure.captured``).
         anchor_index: [Nv] long, the indices of ``visible_mask``'s True entries when the caller
-            keeps them (finding them reads a count back from the device: a host synchronisation).
+            keeps them (finding them reads a count back from the device: a host synchronisation);
+            only with ``visible_mask``.
         compact: False returns every decoded row (M = Nv * k), those that fail the opacity test at
             opacity 0, which the rasterizer leaves out of the image as it leaves out any Gaussian
             below its alpha_min: the same render and gradients without the host synchronisation that
-            counts the kept rows, for a caller that reads no per-Gaussian statistics of them.
+            counts the kept rows, for a caller that reads no per-Gaussian statistics of them. Those
+            rows reach the rasterizer, which refuses non-finite values in any row it is given.
 
     Returns:
-        dict with M kept Gaussians out of Nv * k decoded (Gaussian j of the i-th visible anchor is
-        entry ``i * k + j`` of the [Nv * k] tensors):
+        dict with M Gaussians of the Nv * k decoded (Gaussian j of the i-th visible anchor is entry
+        ``i * k + j`` of the [Nv * k] tensors): the kept ones, or all of them with ``compact=False``:
 
         * ``means`` [M, 3], ``quats`` [M, 4] (w first, unit), ``scales`` [M, 3] (linear; also what
-          the volume regulariser ``volume_loss`` averages), ``opacities`` [M] (in (0, 1)),
-          ``colors`` [M, 3]: rasterizer inputs.
+          the volume regulariser ``volume_loss`` averages), ``opacities`` [M] (in (0, 1); 0 for the
+          rows that fail the opacity test), ``colors`` [M, 3]: rasterizer inputs.
         * ``anchor_index`` [M] long: the model anchor each Gaussian came from.
         * ``neural_opacity`` [Nv * k]: raw tanh opacities, negative ones included (densification's
           opacity statistics).
         * ``mask`` [Nv * k] bool: opacity > 0, which of the decoded Gaussians were kept.
         * ``visible_mask`` [N] bool: the anchors decoded.
-        * ``kept`` [M] bool, only with ``compact=False``: the rows that passed the opacity test
-          (``mask``), which Scaffold-GS's volume regulariser averages over.
+        * ``compacted``: ``compact`` (False: the M rows are the Nv * k, ``mask`` says which passed).
     """
     # Heads with their own offset source may decode another number of Gaussians per anchor (a
     # private decoder's k_hid); the stored offsets fit only the anchors' own k.
@@ -126,6 +127,8 @@ def generate_neural_gaussians(
             f"d={model.feat_dim}, k={model.n_offsets}"
         )
     device = model.xyz.device
+    if anchor_index is not None and visible_mask is None:
+        raise ValueError("anchor_index names the rows of visible_mask: pass the mask with it")
     if visible_mask is None:
         visible_mask = torch.ones(model.num_anchors, dtype=torch.bool, device=device)
     if anchor_index is None:
@@ -143,25 +146,17 @@ def generate_neural_gaussians(
         neural_opacity, means, quats, scales, colors = rows(xyz, feat, log_scaling, camera_center.to(xyz))
 
     mask = neural_opacity > 0.0
-    if not compact:
-        return {"means": means, "quats": quats, "scales": scales,
-                "opacities": torch.where(mask, neural_opacity, torch.zeros_like(neural_opacity)), "colors": colors,
-                "anchor_index": anchor_index.repeat_interleave(k), "neural_opacity": neural_opacity, "mask": mask,
-                "visible_mask": visible_mask, "kept": mask}
-    # The kept rows found once (one host synchronisation; each boolean-mask index costs one).
-    kept = mask.nonzero()[:, 0]
-    return {
-        "means": means[kept],
-        "quats": quats[kept],
-        "scales": scales[kept],
-        "opacities": neural_opacity[kept],
-        "colors": colors[kept],
-        # Gaussian i*k + j belongs to visible anchor i.
-        "anchor_index": anchor_index[kept // k],
-        "neural_opacity": neural_opacity,
-        "mask": mask,
-        "visible_mask": visible_mask,
-    }
+    gaussians = {"means": means, "quats": quats, "scales": scales, "opacities": neural_opacity, "colors": colors}
+    if compact:
+        # The kept rows found once (one host synchronisation; each boolean-mask index costs one).
+        kept_rows = mask.nonzero()[:, 0]
+        gaussians = {name: t[kept_rows] for name, t in gaussians.items()}
+        gaussian_anchor = anchor_index[kept_rows // k]  # Gaussian i*k + j belongs to visible anchor i
+    else:
+        gaussians["opacities"] = torch.where(mask, neural_opacity, torch.zeros_like(neural_opacity))
+        gaussian_anchor = anchor_index.repeat_interleave(k)
+    return {**gaussians, "anchor_index": gaussian_anchor, "neural_opacity": neural_opacity, "mask": mask,
+            "visible_mask": visible_mask, "compacted": compact}
 
 
 def decode_rows(heads: ScaffoldHeads, offset_source: OffsetSource, xyz: torch.Tensor, feat: torch.Tensor,

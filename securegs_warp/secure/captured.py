@@ -101,5 +101,6 @@ class CapturedRows:
             # Busy until the replayed backward ran, or until the autograd graph holding it is freed.
             lease = Lease(graph)
             node.register_hook(lambda grad_inputs, grad_outputs: lease.release())
-        # The graph's output buffer is overwritten by the next replay; the caller keeps a copy.
-        return (neural_opacity.clone(), *rest)
+        # The graph's output buffers are overwritten by the next replay: the caller gets copies (an
+        # uncompacted decoding hands these very tensors on, see generate_neural_gaussians).
+        return tuple(t.clone() for t in (neural_opacity, *rest))

@@ -90,7 +90,8 @@ class PrivateHeads(nn.Module):
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
         self.bits = None
         self.set_message(message, bit_seed, bit_cell)
-        self._serving = Kept()  # the last serving_rows, while positions, radius and box are unchanged
+        self._serving = Kept()  # the last serving_mask, while positions, radius and box are unchanged
+        self._serving_index = Kept()  # its indices, while it is the same mask
 
     def set_message(self, message: str | None, bit_seed: str | None, bit_cell: float | None) -> None:
         """(Re)derive the bit decoder (on the CPU) from the message (L characters 0/1), its seed (hex)
@@ -159,23 +160,19 @@ class PrivateHeads(nn.Module):
         """[N] bool, the anchors that decode hidden Gaussians in the box frame: those within
         ``serving_radius`` of the box, from anchor positions [N, 3]; None in the anchor frame or
         with ``serving`` 0 (the view's visible anchors decode)."""
-        rows = self.serving_rows(xyz)
-        return None if rows is None else rows[0]
-
-    @torch.no_grad()
-    def serving_rows(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """``serving_mask`` [N] bool and the indices of its True entries [Ns] long, or None (as
-        ``serving_mask``). Training renders the same anchors every step: both are kept while the
-        positions, the radius and the box are unchanged, so the indices' host read (a count) is
-        made once per refit, not once per render."""
         if not self.serves_by_radius:
             return None
+        # Training renders the same anchors every step: the mask is kept while they, the radius and
+        # the box are unchanged.
+        return self._serving.get((xyz, self.serving_radius, self.box),
+                                 lambda: self.box_distance(xyz) <= self.serving_radius)
 
-        def rows():
-            mask = self.box_distance(xyz) <= self.serving_radius
-            return mask, mask.nonzero()[:, 0]
-
-        return self._serving.get((xyz, self.serving_radius, self.box), rows)
+    @torch.no_grad()
+    def serving_index(self, xyz: torch.Tensor) -> torch.Tensor | None:
+        """[Ns] long, the indices of ``serving_mask``'s True entries (None where it is None), kept
+        with the mask: their host read (a count) is made once per refit, not once per render."""
+        mask = self.serving_mask(xyz)
+        return None if mask is None else self._serving_index.get((mask,), lambda: mask.nonzero()[:, 0])
 
     def bit_logits(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-anchor bit logits [N] and the bit each anchor votes on [N] (int64), from anchor

@@ -82,11 +82,11 @@ class SecureModel(ScaffoldModel):
         decodes for ``camera`` (the box frame's serving anchors, else the visible ones; None:
         render_view's visibility test), less those robust training drops
         (``PerturbedAnchors.keep``), and their indices where the key keeps them (else None)."""
-        serving = private.serving_rows(anchors.xyz)
+        serving = private.serving_mask(anchors.xyz)
         keep = getattr(anchors, "keep", None)
         if serving is not None and keep is None:
-            return serving
-        mask = visible if serving is None else serving[0]
+            return serving, private.serving_index(anchors.xyz)
+        mask = visible if serving is None else serving
         if keep is None:
             return mask, None
         if mask is None:

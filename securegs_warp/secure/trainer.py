@@ -123,17 +123,15 @@ class SecureTrainer(ScaffoldTrainer):
     # -- rendering ------------------------------------------------------------------------------
 
     def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None,
-                      anchors=None, secret: int = 0, visible: torch.Tensor | None = None) -> dict:
+                      anchors=None, secret: int = 0, visible: torch.Tensor | None = None,
+                      compact: bool = True) -> dict:
         """Secret ``secret``'s hidden render of a view, with the gradient shares of training
         ``step`` (default: the step counter); ``anchors``: robust training's perturbed anchors;
-        ``visible``: see ``SecureModel.render_hidden``. The Gaussians that fail the opacity test stay
-        in the render at opacity 0 unless the strategy reads the hidden Gaussians row by row (a host
-        synchronisation fewer per render)."""
+        ``visible``, ``compact``: see ``SecureModel.render_hidden``."""
         return self.model.render_hidden(cam, self.config.raster, background=self.payloads[secret].background,
                                         camera_index=camera_index, feature_grad=self.current_feature_grad(step),
                                         scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors, secret=secret,
-                                        visible=visible, capture=self.secure.hidden_capture,
-                                        compact=self.strategy.reads_hidden)
+                                        visible=visible, capture=self.secure.hidden_capture, compact=compact)
 
     def current_feature_grad(self, step: int | None = None) -> float:
         """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
@@ -158,8 +156,11 @@ class SecureTrainer(ScaffoldTrainer):
             # Same view and same anchors as the public render: its visibility test holds as it is.
             visible = branches["public"][0]["visible_mask"] if view == index and anchors is None else None
             crop = self._hidden_crop(secret, view)
+            # The Gaussians that fail the opacity test stay in the render at opacity 0 (a host
+            # synchronisation fewer) unless the strategy reads the hidden Gaussians row by row.
             out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
-                                     step=step, anchors=anchors, secret=secret, visible=visible)
+                                     step=step, anchors=anchors, secret=secret, visible=visible,
+                                     compact=self.strategy.reads_hidden)
             target = p.views[view] if p.views is not None else p.image
             share = 1.0
             if crop is not None:

@@ -80,13 +80,15 @@ class ScaffoldStrategy:
                    opacity: bool = True, grad_scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
         """Add one view's statistics (Scaffold-GS ``training_statis``).
 
-        gaussians: the output of ``generate_neural_gaussians`` for the view; info: the matching
+        gaussians: the output of ``generate_neural_gaussians`` for the view (compacted); info: the matching
         ``rasterize`` info after backward. ``prefix`` selects a second set of gradient statistics
         (SecureGS keeps one per branch); ``opacity`` also counts the view in the opacity statistics;
         ``grad_scale`` multiplies the gradient norms (SecureGS divides out its loss weight λ).
         Returns (rows [N·k] bool: the neural Gaussians counted, rendered [M] bool: which of the
         view's M kept Gaussians they are), for statistics a subclass adds alongside.
         """
+        if not gaussians["compacted"]:
+            raise ValueError("the statistics are per kept Gaussian: decode with compact=True")
         visible = gaussians["visible_mask"]
         if opacity:
             neural = gaussians["neural_opacity"].detach().clamp_min(0.0).view(-1, k)

@@ -126,6 +126,8 @@ def volume_loss(scales: torch.Tensor, kept: torch.Tensor | None = None) -> torch
     ``generate_neural_gaussians``), counted on the device."""
     # The product written out: prod's backward reads back from the device whether any factor is 0
     # (a host synchronisation in every training step's backward).
+    if kept is not None:  # the left-out rows replaced, not multiplied by 0: one may hold an inf
+        scales = torch.where(kept[:, None], scales, torch.ones_like(scales))
     volume = scales[:, 0] * scales[:, 1] * scales[:, 2]
     if kept is not None:
         return (volume * kept).sum() / kept.sum().clamp_min(1)

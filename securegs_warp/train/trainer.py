@@ -94,7 +94,8 @@ class ScaffoldTrainer(ViewTrainer):
     def regularizer(self, out: dict) -> torch.Tensor:
         """β·volume of one render: with the photometric term, the paper's ℓ_ori and ℓ_hid."""
         gaussians = out["gaussians"]
-        return self.config.volume_weight * volume_loss(gaussians["scales"], gaussians.get("kept"))
+        kept = None if gaussians["compacted"] else gaussians["mask"]
+        return self.config.volume_weight * volume_loss(gaussians["scales"], kept)
 
     def densify(self, step: int, branches: dict) -> dict:
         return self.strategy.step_post_backward(self.model.anchors, self.optimizer, self.strategy_state, step,
