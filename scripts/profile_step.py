@@ -9,7 +9,9 @@ Every trainer (Scaffold-GS, then SecureGS in each --mode) first runs --warmup st
 compilation, allocator warm-up), then --steps steps with the section timers and --steps without;
 with --count-ops, --steps more under torch.profiler, counting per section what a step launches
 (step_profile.count_ops: aten ops, autograd nodes, host reads, and on CUDA kernel launches and
-copies, and Warp launches). Writes profile_step.json and .md to --out (default $OUT) when given.
+copies, and Warp launches); with --syncs (CUDA), --steps more with torch's synchronisation warnings and
+--steps under torch.profiler, naming where a step waits for the device (step_profile.census_syncs).
+Writes profile_step.json and .md to --out (default $OUT) when given.
 """
 import argparse
 import functools
@@ -43,6 +45,7 @@ def main():
                                                       "docs/results.md's profiles; cover: an object's default; e.g. "
                                                       "cover:hidden_capture=false)")
     parser.add_argument("--count-ops", action="store_true", help="also count what a step launches, by section")
+    parser.add_argument("--syncs", action="store_true", help="also name where a step waits for the device (CUDA)")
     parser.add_argument("--no-timing", dest="timing", action="store_false", help="skip the timed steps")
     parser.add_argument("--options", default="", help="rasterizer options on top of the device's, e.g. capture=true")
     parser.add_argument("--out", default=os.environ.get("OUT"), help="folder for profile_step.json and .md")
@@ -51,6 +54,8 @@ def main():
         raster = benchmark.parse_options(args.options, RasterOptions.for_device(args.device))
     except ValueError as e:
         parser.error(str(e))
+    if args.syncs and args.device != "cuda":
+        parser.error("--syncs names CUDA synchronisations: it needs --device cuda")
     quiet_warp()
     scene = make_synthetic_scene(hidden=args.hide, level="object", width=args.width, height=args.height,
                                  n_train=args.train_views, n_test=1, device=args.device)
@@ -63,7 +68,7 @@ def main():
         except ValueError as e:
             parser.error(str(e))
         trainers[label] = functools.partial(SecureTrainer, scene, config, secure, device=args.device)
-    results, counts = {}, {}
+    results, counts, syncs = {}, {}, {}
     for label, make in trainers.items():
         trainer = make()  # one at a time: a 1080p trainer holds its targets and buffers on the device
         for _ in range(args.warmup):
@@ -75,6 +80,8 @@ def main():
         if args.count_ops:
             counts[label] = step_profile.count_ops(trainer, args.steps)
             print(label, "counts", json.dumps(counts[label]["total"]), flush=True)
+        if args.syncs:
+            syncs[label] = step_profile.census_syncs(trainer, args.steps)
         del trainer
     device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
     setup = (f"{device}, synthetic {args.width}×{args.height}, payload {args.payload}, mean of {args.steps} "
@@ -89,12 +96,15 @@ def main():
     if counts:
         kinds = step_profile.COUNTS if args.device == "cuda" else step_profile.HOST_COUNTS
         tables.append(step_profile.count_table(counts, f"What a step launches, per step: {setup}", kinds))
+    if syncs:
+        tables.append(step_profile.census_table(syncs, f"Where a step waits for the device: {setup}"))
     text = "\n\n".join(tables)
     print(text)
     if args.out:
         os.makedirs(args.out, exist_ok=True)
         with open(os.path.join(args.out, "profile_step.json"), "w") as f:
-            json.dump({"device": device, "args": vars(args), "results": results, "counts": counts}, f, indent=1)
+            json.dump({"device": device, "args": vars(args), "results": results, "counts": counts, "syncs": syncs},
+                      f, indent=1)
         with open(os.path.join(args.out, "profile_step.md"), "w") as f:
             f.write(text + "\n")
 

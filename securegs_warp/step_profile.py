@@ -9,12 +9,17 @@ Each section synchronises the device on entry and exit (``torch.cuda.synchronize
 the GPU work it queued plus its host time, and nested sections are subtracted from their parent
 ("other": what ``step`` does outside every section). Those synchronisations slow the step down:
 ``step_ms`` times the same number of steps without them.
+
+``census_syncs(trainer, steps)`` (CUDA only) finds where a step waits for the device.
 """
 from __future__ import annotations
 
 import bisect
+import collections
 import contextlib
 import time
+import traceback
+import warnings
 
 import torch
 
@@ -273,3 +278,59 @@ def profile_table(results: dict, title: str) -> str:
     for key, label in (("profiled_step_ms", "step, with the section timers"), ("step_ms", "step, no timers")):
         lines.append(f"| **{label}** | " + " | ".join(f"**{results[k][key]:.2f}**" for k in labels) + " |")
     return "\n".join(lines)
+
+
+# CUDA runtime calls that can block the host (a copy blocks when it reads back to host memory).
+_BLOCKING = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize", "cudaMemcpy",
+             "cudaMemcpyAsync")
+
+
+def census_syncs(trainer, steps: int) -> dict:
+    """Where ``steps`` training steps of a CUDA ``trainer`` wait for the device, seen two ways.
+
+    Returns {"lines": {place: per step}, "runtime": {call: per step}}:
+    ``lines`` counts torch.cuda.set_sync_debug_mode("warn")'s warnings by the innermost three
+    frames inside securegs_warp (the Python lines that synchronise); ``runtime`` counts
+    torch.profiler's CUDA runtime calls that can block, each with up to six parent ops, which names
+    what the warnings cannot: a C++ autograd node's read (the second run of ``steps`` steps).
+    """
+    if trainer.device.type != "cuda":
+        raise ValueError(f"census_syncs needs a CUDA trainer (synchronisations are CUDA's), got {trainer.device}")
+    lines = collections.Counter()
+
+    def note(message, category, filename, lineno, file=None, line=None):
+        frames = [f for f in traceback.extract_stack() if "securegs_warp" in f.filename]
+        lines[" < ".join(f"{f.filename.split('securegs_warp/')[-1]}:{f.lineno}" for f in frames[-3:][::-1])] += 1
+
+    torch.cuda.synchronize()
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = note
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            for _ in range(steps):
+                trainer.step()
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+    runtime = collections.Counter()
+    activities = [torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA]
+    with torch.profiler.profile(activities=activities) as prof:
+        for _ in range(steps):
+            trainer.step()
+    for event in prof.events():
+        if event.name in _BLOCKING:
+            parents = [p.name for p, _ in zip(_ancestors(event), range(6))]
+            runtime[" <- ".join([event.name, *parents])] += 1
+    return {"lines": {k: n / steps for k, n in lines.most_common()},
+            "runtime": {k: n / steps for k, n in runtime.most_common()}}
+
+
+def census_table(results: dict, title: str) -> str:
+    """Markdown: for each trainer in ``results`` ({label: census_syncs}) its places, most first."""
+    out = [title]
+    for label, census in results.items():
+        for kind, heading in (("lines", "synchronising lines"), ("runtime", "CUDA runtime calls that can block")):
+            out += ["", f"{label}: {heading}, {sum(census[kind].values()):.1f} per step", "",
+                    "| per step | where |", "|---|---|"]
+            out += [f"| {n:.1f} | `{where}` |" for where, n in census[kind].items()]
+    return "\n".join(out)

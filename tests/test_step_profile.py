@@ -1,5 +1,8 @@
 """securegs_warp.step_profile: every section of a SecureGS and a Scaffold-GS step is timed at a tiny
 size on the CPU (no timing is asserted, only that the sections are found and the patches undone)."""
+from types import SimpleNamespace
+
+import pytest
 import torch
 
 from securegs_warp import render as render_module
@@ -66,3 +69,14 @@ def test_count_ops_finds_each_branch_and_restores_everything():
     assert results["secure"]["total"]["aten ops"] > results["scaffold"]["total"]["aten ops"]
     table = step_profile.count_table(results, "title")
     assert "| hidden heads |" in table and "scaffold aten ops" in table and "| **step** |" in table
+
+
+def test_the_sync_census_is_cuda_only_and_its_table_lists_each_place():
+    trainer = SimpleNamespace(device=torch.device("cpu"))
+    with pytest.raises(ValueError, match="CUDA"):
+        step_profile.census_syncs(trainer, 1)
+    census = {"lines": {"render.py:62": 2.0, "train/base.py:139": 1.0},
+              "runtime": {"cudaStreamSynchronize <- aten::item": 1.5}}
+    table = step_profile.census_table({"Scaffold-GS": census}, "title")
+    assert "synchronising lines, 3.0 per step" in table and "| 2.0 | `render.py:62` |" in table
+    assert "can block, 1.5 per step" in table and "`cudaStreamSynchronize <- aten::item`" in table
