@@ -55,11 +55,13 @@ def parse_variant(text: str, base: SecureConfig) -> tuple[str, SecureConfig]:
 
 def train(trainer, label: str) -> dict:
     """Run the trainer's whole budget. Returns ``nonfinite_steps`` (steps with a non-finite gradient,
-    skipped by the trainer), ``nonfinite_at`` ([step, [parameter groups at fault]] of each) and
-    ``train_psnr_per_100`` (the mean training-view PSNR of every 100 steps, to see when a run went
-    wrong)."""
+    skipped by the trainer), ``nonfinite_at`` ([step, [parameter groups at fault]] of each),
+    ``incomplete_steps`` (steps skipped because a captured render overflowed its intersection
+    capacity) and ``train_psnr_per_100`` (the mean training-view PSNR of every 100 steps, to see when
+    a run went wrong)."""
     t0 = time.perf_counter()
     nonfinite_at, trace, window = [], [], []
+    incomplete = 0
     while trainer.step_count < trainer.config.iterations:
         stats = trainer.step()
         window.append(stats["psnr"])
@@ -68,10 +70,12 @@ def train(trainer, label: str) -> dict:
             window = []
         if "nonfinite_grads" in stats:
             nonfinite_at.append([trainer.step_count, stats["nonfinite_groups"]])
+        incomplete += "incomplete_renders" in stats
     print(f"{label}: {trainer.config.iterations} steps in {time.perf_counter() - t0:.0f} s, "
           f"{trainer.model.anchors.num_anchors} anchors, {len(nonfinite_at)} steps with non-finite gradients "
-          f"{nonfinite_at or ''}", flush=True)
-    return {"nonfinite_steps": len(nonfinite_at), "nonfinite_at": nonfinite_at, "train_psnr_per_100": trace}
+          f"{nonfinite_at or ''}, {incomplete} with an incomplete captured render", flush=True)
+    return {"nonfinite_steps": len(nonfinite_at), "nonfinite_at": nonfinite_at, "incomplete_steps": incomplete,
+            "train_psnr_per_100": trace}
 
 
 class RegionErrors:

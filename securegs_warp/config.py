@@ -245,8 +245,11 @@ class SecureConfig:
         on the steps that are multiples of both this and its own ``hidden_every``.
     hidden_capture: on CUDA, a box-frame key's decoding of its serving anchors (``hidden_anchors``
         > 0) is replayed from CUDA graphs during training (``secure.captured``): the same values up
-        to float rounding, for a fraction of the host work. Robust training's attacked anchors,
-        evaluation (no gradients) and the CPU decode op by op, as everything does with it off.
+        to float rounding, for a fraction of the host work; in the cover mode without the hidden
+        crop its rasterize is replayed too (``RasterOptions.capture``; the intersection capacity
+        grows with what the views need, and a step whose render overflowed it is skipped). Robust
+        training's attacked anchors, evaluation (no gradients) and the CPU decode op by op, as
+        everything does with it off.
     """
 
     payload: str = "object+bits:48"

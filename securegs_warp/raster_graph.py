@@ -7,9 +7,12 @@ count). The forward (projection, binning to the capacity with padding keys, blen
 replayed thereafter; on the CPU the same launches run directly.
 
 The eager op learns the intersection count and the inputs' finiteness before it sorts (one host
-synchronisation). A replay cannot: it copies both to host memory asynchronously and the next forward
-of the same entry checks them after waiting for that earlier forward only (not for the work queued
-since), raising for an overflow of the capacity or a non-finite input of that earlier render.
+synchronisation). A replay cannot: it copies both to host memory asynchronously, and the next forward
+of the same entry reads them after waiting for that earlier forward only (not for the work queued
+since). A non-finite input raises there. A count past the capacity (the render lacked some
+intersections) grows the capacity for the renders to come, and raises unless the caller already
+asked whether that render was complete (``info["complete"]``): a training loop that checks it can
+drop the step instead of stopping (``train.base.ViewTrainer.step``).
 
 Two renders of the same shape may be in flight at once (a public and a hidden render before one
 backward): an entry is leased from forward until its backward ran or its autograd graph was freed,
@@ -48,7 +51,7 @@ class _Captured:
         self.plan.allocate_intersections(int(needed * HEADROOM) + SLACK)
         self.graphs = {}
         self.busy = False
-        self.pending = None  # (event, host count, host flags, names) of the last forward, unchecked
+        self.pending: _Render | None = None  # the last forward, not yet read
         if self.cuda:  # where the replays' count and finiteness flags land, asynchronously
             self.host_count = torch.empty(1, dtype=torch.int64, pin_memory=True)
             self.host_flags = torch.empty(len(inputs) + 1, dtype=torch.bool, pin_memory=True)
@@ -95,21 +98,25 @@ class _Captured:
                 wp.capture_launch(graph, stream=wp.stream_from_torch(torch.cuda.current_stream()))
 
     def check_pending(self) -> None:
-        """Raise for the last forward's overflow or non-finite input, once it has finished."""
-        if self.pending is None:
+        """Read the last forward once it has finished: raise for a non-finite input; for an
+        overflow of the capacity, grow it past that render's count (its graphs are captured again)
+        and raise unless its caller asked ``complete()``."""
+        render, self.pending = self.pending, None
+        if render is None:
             return
-        event, count, flags, names = self.pending
-        self.pending = None
-        if event is not None:
-            event.synchronize()
-        check_finite((names, flags.tolist()))
-        if int(count) > self.plan.capacity:
-            raise RuntimeError(
-                f"a captured render needed {int(count)} tile intersections, more than the capacity of "
-                f"{self.plan.capacity} fixed when its shape was first rendered: its image lacked some; render "
-                f"with capture=False where the scene changes this much")
+        render.read()
+        check_finite((render.names, render.finite))
+        if render.needed > render.capacity:
+            self.plan.allocate_intersections(int(render.needed * HEADROOM) + SLACK)
+            self.graphs.clear()  # they sort into the old buffers
+            if not render.asked:
+                raise RuntimeError(
+                    f"a captured render needed {render.needed} tile intersections, more than the capacity of "
+                    f"{render.capacity} fixed by the renders of its shape before it: its image lacked some (the "
+                    "capacity has grown for the next render); check info['complete'] where the scene changes "
+                    "this much, or render with capture=False")
 
-    def forward(self, inputs: dict, finite) -> list:
+    def forward(self, inputs: dict, finite) -> tuple[list, _Render]:
         self.check_pending()
         for name, t in inputs.items():
             if name != "color_table" or t is not inputs["colors"]:
@@ -124,12 +131,11 @@ class _Captured:
             host_flags.copy_(flags, non_blocking=True)
             event = torch.cuda.Event()
             event.record()
-            self.pending = (event, self.host_count, host_flags, names)
+            self.pending = _Render(event, self.host_count, host_flags, names, self.plan.capacity)
         else:
-            self.pending = (None, count.clone(), flags.clone(), names)
-            self.check_pending()
+            self.pending = _Render(None, count.clone(), flags.clone(), names, self.plan.capacity)
         out = [self.plan.out[k].clone() for k in OUTPUT_NAMES]
-        return out + [self.plan.ends[-1].clone() if self.plan.n else 0]
+        return out + [self.plan.ends[-1].clone() if self.plan.n else 0], self.pending
 
     def backward(self, grads) -> list:
         for buffer, g in zip(self.cotangents, grads):
@@ -139,6 +145,29 @@ class _Captured:
                 buffer.copy_(g)
         self._run("backward", self._backward_ops)
         return [g.clone() for g in self.plan.grads], self.plan.means2d_grad.clone()
+
+
+class _Render:
+    """One captured forward's intersection count and input finiteness flags, in host memory that
+    its entry's next forward reuses: read (``read``) before that, and kept."""
+
+    def __init__(self, event, count: torch.Tensor, flags: torch.Tensor, names: tuple, capacity: int):
+        self.event, self.count, self.flags, self.names, self.capacity = event, count, flags, names, capacity
+        self.needed: int | None = None
+        self.finite: list | None = None
+        self.asked = False
+
+    def read(self) -> None:
+        if self.needed is None:
+            if self.event is not None:
+                self.event.synchronize()
+            self.needed, self.finite = int(self.count), self.flags.tolist()
+
+    def complete(self) -> bool:
+        """Whether the capacity held every tile intersection of this render (waits for it only)."""
+        self.asked = True
+        self.read()
+        return self.needed <= self.capacity
 
 
 def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Captured:
@@ -166,12 +195,13 @@ class _CapturedRasterize(torch.autograd.Function):
         entry = _acquire(inputs, width, height, opts)
         lease = Lease(entry)
         try:
-            outputs = entry.forward(inputs, finite)
+            outputs, render = entry.forward(inputs, finite)
         except BaseException:
             lease.release()
             raise
         ctx.lease = lease
         ctx.info = info
+        info["complete"] = render.complete
         ctx.mark_non_differentiable(*outputs[3:8])
         return tuple(outputs)
 

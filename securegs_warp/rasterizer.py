@@ -67,10 +67,11 @@ class RasterOptions:
     # Replay the forward (projection → binning → blend) and the backward as Warp graphs kept per
     # input shape, for loops that render the same N, C and image size again and again: no host
     # launches or synchronisations per render. The sort runs over a fixed intersection capacity (the
-    # first render's count with headroom); a later render that needs more, or has non-finite
-    # inputs, raises at the next captured call of that shape (securegs_warp/raster_graph.py). Same
-    # images and gradients as eager. On the CPU it runs the same fixed-capacity launches without a
-    # graph.
+    # first render's count with headroom). A later render that needs more lacks intersections, which
+    # its info["complete"] tells; the next captured call of that shape grows the capacity, and raises
+    # if nobody asked. One with non-finite inputs raises there (securegs_warp/raster_graph.py). Same
+    # images and gradients as eager otherwise. On the CPU it runs the same fixed-capacity launches
+    # without a graph.
     capture: bool = False
     # CUDA launch shape only (results do not depend on it): threads per block of the forward and
     # backward blending kernels; a block owns that many pixels of a tile and shares each batch of
@@ -230,7 +231,9 @@ def rasterize(
         ``opacities`` [N] (after antialiasing compensation), ``n_intersections`` (an int; with
         ``capture`` a 0-d int64 device tensor, so that reading it is the caller's choice), ``tile_size``,
         ``width``, ``height``, ``depth`` [H, W, 1] when asked, and ``means2d_grad`` [N, 2], which the
-        backward pass fills with dL/d means2d (pixels) for densification statistics.
+        backward pass fills with dL/d means2d (pixels) for densification statistics. With
+        ``capture`` also ``complete``: a function that waits for this render and tells whether its
+        intersections fit the capacity (False: the image lacks some; see ``raster_graph``).
 
     Raises:
         ValueError: a tensor with the wrong shape, a non-finite value (naming the tensor), a bad

@@ -24,6 +24,7 @@ import warnings
 import torch
 
 from . import render as render_module
+from .raster_graph import _CapturedRasterize
 from .rasterizer import _Rasterize
 from .train import base as train_base
 
@@ -115,6 +116,7 @@ def _section_patches(trainer, wrap) -> list:
         (train_base, "nonfinite_gradient_counts", wrap(train_base.nonfinite_gradient_counts, "gradient check")),
         (torch.Tensor, "backward", wrap(torch.Tensor.backward, "backward (autograd, MLPs)")),
         (_Rasterize, "backward", staticmethod(wrap(_Rasterize.backward, "rasterize backward"))),
+        (_CapturedRasterize, "backward", staticmethod(wrap(_CapturedRasterize.backward, "rasterize backward"))),
     ]
     if hasattr(trainer, "render_hidden"):
         patches.append((trainer, "render_hidden", wrap(trainer.render_hidden, "hidden heads")))

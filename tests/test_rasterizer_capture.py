@@ -1,5 +1,6 @@
 """``RasterOptions.capture``: the fixed-capacity render replayed from Warp graphs (CUDA) or run
-directly (CPU) gives the eager op's images, outputs and gradients; overflow and non-finite inputs raise."""
+directly (CPU) gives the eager op's images, outputs and gradients; a non-finite input raises; an
+overflow of the capacity grows it, and raises where the caller did not ask ``info["complete"]``."""
 import pytest
 import torch
 
@@ -79,19 +80,41 @@ def test_two_renders_in_flight_keep_their_own_state():
 
 
 def raises_by_the_next_call(first, bad, error, match):
-    """Render ``first`` captured, then ``bad`` of the same shape: the CPU raises at once, CUDA (which
-    checks a replay after it ran) at the following call of that shape."""
+    """Render ``first`` captured, then ``bad`` of the same shape: the following call of that shape
+    raises (a replay is checked after it ran)."""
     render(first, True, backward=False)
+    render(bad, True, backward=False)
     with pytest.raises(error, match=match):
         render(bad, True, backward=False)
-        render(bad, True, backward=False)
 
 
-def test_capacity_overflow_raises():
-    # Past the capacity's headroom and slack: ~70 small Gaussians, then 70 that cover the whole image.
-    small = random_scene(16, n=70, width=320, height=240, scale=(0.01, 0.02), tile_size=8)
-    large = random_scene(16, n=70, width=320, height=240, scale=(1.0, 2.0), tile_size=8)
-    raises_by_the_next_call(small, large, RuntimeError, "capacity")
+# Past the capacity's headroom and slack: ~70 small Gaussians, then 70 that cover the whole image.
+SMALL = dict(seed=16, n=70, width=320, height=240, scale=(0.01, 0.02), tile_size=8)
+LARGE = {**SMALL, "scale": (1.0, 2.0)}
+
+
+def test_capacity_overflow_raises_where_nobody_asked():
+    raises_by_the_next_call(random_scene(**SMALL), random_scene(**LARGE), RuntimeError, "capacity")
+    # The capacity grew: the same render again is whole.
+    large = random_scene(**LARGE)
+    assert_same(render(large, True), render(large, False))
+
+
+def test_capacity_overflow_told_by_complete_then_grown():
+    small, large = random_scene(**SMALL), random_scene(**LARGE)
+    render(small, True, backward=False)
+    leaves = {name: getattr(large, name).detach().clone().to(TEST_DEVICE) for name in DIFF_INPUTS}
+    args = dict(viewmat=large.viewmat.to(TEST_DEVICE), K=large.K.to(TEST_DEVICE), width=large.width,
+                height=large.height, capture=True, **large.kwargs)
+    overflowed, _, info = rasterize(**leaves, **args)
+    assert info["complete"]() is False
+    eager = render(large, False)
+    assert not torch.equal(overflowed.cpu(), eager[0][0])  # it lacked intersections
+    # Asked, the overflow does not raise: the next render of the shape grows the capacity, is whole
+    # and says so.
+    _, _, info = rasterize(**leaves, **args)
+    assert info["complete"]() is True
+    assert_same(render(large, True), eager)
 
 
 def test_non_finite_input_raises_naming_it():

@@ -1,8 +1,13 @@
-"""The box frame's private decoding replayed from CUDA graphs (secure.captured) renders and
-differentiates as the same decoding op by op. The comparison needs CUDA (SECUREGS_TEST_DEVICE=cuda
-on a GPU machine); on the CPU the option leaves training unchanged and the graphs refuse CPU tensors."""
+"""The box frame's private decoding replayed from CUDA graphs (secure.captured), and its uncompacted
+render rasterized from Warp graphs (RasterOptions.capture), render and differentiate as the same
+decoding and render op by op. The comparison needs CUDA (SECUREGS_TEST_DEVICE=cuda on a GPU
+machine); on the CPU the option leaves training unchanged and the graphs refuse CPU tensors."""
+import dataclasses
+
 import pytest
 import torch
+
+from securegs_warp import raster_graph
 
 from securegs_warp.config import SecureConfig, apply_overrides
 from securegs_warp.data import make_synthetic_scene
@@ -24,12 +29,13 @@ def _trainer(device, capture=True, serving=60):
                          device=device)
 
 
-def _render_and_grads(t, capture, weights, compact=True):
+def _render_and_grads(t, capture, weights, compact=True, replay_raster=False):
     """The hidden render of training view 1 and the gradients of sum(weights · image) with respect
     to the anchor features and scalings and to the private heads' parameters."""
     for p in t.model.parameters():
         p.grad = None
-    out = t.model.render_hidden(t.scene.train[1], t.config.raster, background=t.payloads[0].background,
+    options = dataclasses.replace(t.config.raster, capture=replay_raster)
+    out = t.model.render_hidden(t.scene.train[1], options, background=t.payloads[0].background,
                                 feature_grad=0.1, capture=capture, compact=compact)
     (out["image"] * weights).sum().backward()
     private = t.model.secrets[0]
@@ -45,9 +51,12 @@ def test_the_replayed_decoding_renders_and_differentiates_as_the_eager_one():
         t.step()
     weights = torch.rand(t.scene.train[1].height, t.scene.train[1].width, 3, device="cuda")
     assert t.model._captured[0]._graphs, "training on CUDA did not take the replayed path"
-    for round_, compact in enumerate((True, False, True)):  # replays, the last after the parameters moved in place
+    assert any(e.graphs for entries in raster_graph._POOL.values() for e in entries), \
+        "training on CUDA did not replay the hidden rasterize"
+    # Replays (uncompacted: with the rasterize replayed as well), the last after the parameters moved in place.
+    for round_, compact in enumerate((True, False, True)):
         eager_image, eager = _render_and_grads(t, False, weights, compact)
-        image, replayed = _render_and_grads(t, True, weights, compact)
+        image, replayed = _render_and_grads(t, True, weights, compact, replay_raster=not compact)
         assert (image - eager_image).abs().max() < 1e-5, round_
         for name, g in eager.items():
             assert (g is None) == (replayed[name] is None), name

@@ -255,6 +255,30 @@ def test_nonfinite_gradients_skip_the_step(tiny_scene):
     assert "nonfinite_grads" not in ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, raster=CPU_RASTER)).step()
 
 
+def test_a_render_that_lacked_intersections_skips_the_step(tiny_scene):
+    """A captured render that overflowed its intersection capacity (``info["complete"]`` False) gave
+    wrong gradients: its step changes no parameter and says so; the step counter still advances."""
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=10, raster=CPU_RASTER, densify=False))
+    trainer.step()
+    render = trainer.render
+
+    def overflowed(*args, **kwargs):
+        out = render(*args, **kwargs)
+        out["info"]["complete"] = lambda: False
+        return out
+    trainer.render = overflowed
+    params = [p for group in trainer.optimizer.param_groups for p in group["params"]]
+    before = [p.detach().clone() for p in params]
+    stats = trainer.step()
+    assert stats["incomplete_renders"] == 1 and "nonfinite_grads" not in stats
+    assert all(torch.equal(p, old) for p, old in zip(params, before))
+    assert trainer.step_count == 2
+    trainer.render = render
+    stats = trainer.step()
+    assert "incomplete_renders" not in stats
+    assert not all(torch.equal(p, old) for p, old in zip(params, before))
+
+
 def photometric_loss_single_image(image, target):
     """The image term as one [H, W, C] image at a time computed it (L1 mean + 3DGS's SSIM, λ 0.2)."""
     return 0.8 * (image - target).abs().mean() + 0.2 * (1.0 - ssim_2d_float64(image, target).float())

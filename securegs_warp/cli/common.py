@@ -226,7 +226,7 @@ def _interrupt_between_steps():
 
 # A step that reports one of these is always logged: densification changed the model (Scaffold-GS's
 # grown anchors, 3DGS's clones and opacity resets), or the update was skipped.
-CHANGE_KEYS = ("grown", "cloned", "opacity_reset", "nonfinite_grads")
+CHANGE_KEYS = ("grown", "cloned", "opacity_reset", "nonfinite_grads", "incomplete_renders")
 
 
 def train_loop(trainer, run: RunFolder, args, finish, passphrase: str | None = None) -> int:

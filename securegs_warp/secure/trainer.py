@@ -124,11 +124,13 @@ class SecureTrainer(ScaffoldTrainer):
 
     def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None,
                       anchors=None, secret: int = 0, visible: torch.Tensor | None = None,
-                      compact: bool = True) -> dict:
+                      compact: bool = True, replay_raster: bool = False) -> dict:
         """Secret ``secret``'s hidden render of a view, with the gradient shares of training
         ``step`` (default: the step counter); ``anchors``: robust training's perturbed anchors;
-        ``visible``, ``compact``: see ``SecureModel.render_hidden``."""
-        return self.model.render_hidden(cam, self.config.raster, background=self.payloads[secret].background,
+        ``visible``, ``compact``: see ``SecureModel.render_hidden``; ``replay_raster``: rasterize with
+        ``RasterOptions.capture`` (for renders of one row count and image size, step after step)."""
+        options = dataclasses.replace(self.config.raster, capture=True) if replay_raster else self.config.raster
+        return self.model.render_hidden(cam, options, background=self.payloads[secret].background,
                                         camera_index=camera_index, feature_grad=self.current_feature_grad(step),
                                         scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors, secret=secret,
                                         visible=visible, capture=self.secure.hidden_capture, compact=compact)
@@ -158,9 +160,15 @@ class SecureTrainer(ScaffoldTrainer):
             crop = self._hidden_crop(secret, view)
             # The Gaussians that fail the opacity test stay in the render at opacity 0 (a host
             # synchronisation fewer) unless the strategy reads the hidden Gaussians row by row.
+            compact = self.strategy.reads_hidden
+            # Then a box-frame key's render of this model's own serving anchors has one row count
+            # until its radius is refit, and whole views one size: its rasterize replays from graphs
+            # on CUDA (a step whose view overflows the capacity is skipped, see ViewTrainer.step).
+            replay = (self.secure.hidden_capture and self.device.type == "cuda" and not compact and crop is None
+                      and anchors is None and self.model.secrets[secret].serves_by_radius)
             out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
                                      step=step, anchors=anchors, secret=secret, visible=visible,
-                                     compact=self.strategy.reads_hidden)
+                                     compact=compact, replay_raster=replay)
             target = p.views[view] if p.views is not None else p.image
             share = 1.0
             if crop is not None:

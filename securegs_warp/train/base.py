@@ -138,11 +138,17 @@ class ViewTrainer:
         loss = self.image_losses(renders)
         loss.backward()
         bad = nonfinite_gradient_counts(self.optimizer)
+        # After that synchronisation, asking a captured render whether it was whole waits for nothing.
+        incomplete = incomplete_renders(renders)
         changed = {}
-        if bad:
+        if bad or incomplete:
             # Skip the whole update, as mixed-precision training does on overflow: see
-            # nonfinite_gradient_counts for why zeroing the bad entries is not enough.
-            extra = {**extra, "nonfinite_grads": sum(bad.values()), "nonfinite_groups": sorted(bad)}
+            # nonfinite_gradient_counts for why zeroing the bad entries is not enough; a render that
+            # lacked intersections gave the wrong gradients.
+            if bad:
+                extra = {**extra, "nonfinite_grads": sum(bad.values()), "nonfinite_groups": sorted(bad)}
+            if incomplete:
+                extra = {**extra, "incomplete_renders": incomplete}
         else:
             if self.config.densify:
                 changed = self.densify(step, branches)
@@ -251,6 +257,14 @@ class ViewTrainer:
             if field is not None:
                 raise ValueError(f"{path}: checkpoint was written with other training options ({field} differs); "
                                  "resume with the run's own config")
+
+
+def incomplete_renders(renders: list) -> int:
+    """How many of a step's renders [(out, target, weight)] lacked tile intersections: captured
+    renders (``RasterOptions.capture``) whose view needed more than the capacity that their shape had
+    (which then grows for the next render; ``rasterize``'s ``info["complete"]``)."""
+    infos = [out.get("info", {}) for out, _, _ in renders]  # a decoded image (GS-Hider's) has none
+    return sum(not info["complete"]() for info in infos if "complete" in info)
 
 
 @torch.no_grad()
