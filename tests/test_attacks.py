@@ -216,7 +216,7 @@ def test_robust_training_perturbs_only_the_hidden_branch(scene, monkeypatch):
         real = module.render_view
 
         def spy(anchors, *args, real=real, branch=branch, **kwargs):
-            seen[branch] = (anchors, kwargs.get("anchor_mask"))
+            seen[branch] = (anchors, kwargs.get("anchor_mask"), kwargs.get("keep"))
             return real(anchors, *args, **kwargs)
 
         monkeypatch.setattr(module, "render_view", spy)
@@ -224,10 +224,11 @@ def test_robust_training_perturbs_only_the_hidden_branch(scene, monkeypatch):
                             SecureConfig(payload="object+bits:8", robust="prune-random:0.5+noise-feat:0.3"))
     trainer.step()
     public, hidden = seen["public"], seen["hidden"]
-    assert public == (trainer.model.anchors, None)
+    assert public == (trainer.model.anchors, None, None)
     assert isinstance(hidden[0], PerturbedAnchors)
     keep = hidden[0].keep
-    assert hidden[1] is not None and not (hidden[1] & ~keep).any() and not keep.all()  # dropped anchors stay out
+    # The box frame decodes its serving anchors and drops by keep (their Gaussians stay out).
+    assert hidden[1] is not None and hidden[2] is keep and (hidden[1] & ~keep).any() and not keep.all()
     assert not torch.equal(hidden[0].feat.detach(), trainer.model.anchors.feat.detach())
 
 

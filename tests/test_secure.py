@@ -170,6 +170,47 @@ def test_the_uncompacted_hidden_render_is_the_compacted_one(hidden_scene, option
         assert (row_grads[name] - g).abs().max() <= 1e-5 * g.abs().max().clamp_min(1e-12), name
 
 
+def test_robust_dropout_keeps_the_box_frames_rows_and_renders_as_leaving_them_out(hidden_scene):
+    """Robust training drops anchors by ``keep``: in the box frame their rows stay (at opacity 0, a
+    fixed row count that graphs can replay) and the render and gradients are those of leaving the
+    dropped anchors out of the decoding, compacted or not."""
+    from securegs_warp.render import render_view
+    from securegs_warp.secure.robust import perturb
+
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=10, raster=CPU_RASTER),
+                            SecureConfig(payload="object", robust="prune-random:0.6+noise-feat:0.3"))
+    trainer.step()
+    model, private, cam = trainer.model, trainer.model.secrets[0], hidden_scene.train[1]
+    anchors = perturb(model.anchors, trainer.robust, torch.Generator().manual_seed(3))
+    serving = private.serving_mask(model.anchors.xyz)
+    assert anchors.xyz is model.anchors.xyz and model.fixed_rows(0, anchors)
+    assert (serving & ~anchors.keep).any() and (serving & anchors.keep).any()
+    weights = torch.rand(cam.height, cam.width, 3, generator=torch.Generator().manual_seed(0))
+    results = {}
+    for how in ("rows", "compacted", "left out"):
+        for p in model.parameters():
+            p.grad = None
+        if how == "left out":
+            out = render_view(anchors, private.decoder, cam, trainer.payloads[0].background, trainer.config.raster,
+                              camera_index=1, offset_source=private.hidden_offsets,
+                              feature_grad=trainer.current_feature_grad(), scaling_grad=trainer.secure.hidden_scaling_grad,
+                              anchor_mask=serving & anchors.keep)
+        else:
+            out = trainer.render_hidden(cam, 1, anchors=anchors, compact=how == "compacted")
+        ((out["image"] * weights).sum() + trainer.regularizer(out)).backward()
+        results[how] = (out, {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
+    k = private.decoder.n_offsets
+    assert results["rows"][0]["gaussians"]["opacities"].shape[0] == int(serving.sum()) * k
+    reference, reference_grads = results["left out"]
+    assert reference["image"].abs().max() > 0
+    for how in ("rows", "compacted"):
+        out, grads = results[how]
+        assert torch.equal(out["image"], reference["image"]), how
+        assert set(grads) == set(reference_grads), how
+        for name, g in reference_grads.items():
+            assert (grads[name] - g).abs().max() <= 1e-5 * g.abs().max().clamp_min(1e-12), (how, name)
+
+
 @pytest.mark.parametrize("mode", ["cover", "rdo"])
 def test_training_compacts_the_hidden_render_only_where_the_strategy_reads_it(hidden_scene, mode):
     trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=10, raster=CPU_RASTER),

@@ -18,25 +18,26 @@ from securegs_warp.secure.captured import CapturedRows
 from securegs_warp.train import TrainConfig
 
 
-def _trainer(device, capture=True, serving=60):
+def _trainer(device, capture=True, serving=60, robust=None):
     scene = make_synthetic_scene(hidden="mug", level="object", width=96, height=72, n_train=4, n_test=1,
                                  n_points=600, device=device)
-    secure = apply_overrides(SecureConfig(payload="object"), {"strategy.mode": "cover", "hidden_offsets": 4,
-                                                              "hidden_width": 16, "hidden_anchors": serving,
-                                                              "hidden_capture": capture})
+    secure = apply_overrides(SecureConfig(payload="object", robust=robust),
+                             {"strategy.mode": "cover", "hidden_offsets": 4, "hidden_width": 16,
+                              "hidden_anchors": serving, "hidden_capture": capture})
     torch.manual_seed(0)
     return SecureTrainer(scene, TrainConfig(iterations=10, seed=0, raster=RasterOptions(tile_size=8)), secure,
                          device=device)
 
 
-def _render_and_grads(t, capture, weights, compact=True, replay_raster=False):
-    """The hidden render of training view 1 and the gradients of sum(weights · image) with respect
-    to the anchor features and scalings and to the private heads' parameters."""
+def _render_and_grads(t, capture, weights, compact=True, replay_raster=False, anchors=None):
+    """The hidden render of training view 1 (of ``anchors``: robust training's perturbed ones) and
+    the gradients of sum(weights · image) with respect to the anchor features and scalings and to
+    the private heads' parameters."""
     for p in t.model.parameters():
         p.grad = None
     options = dataclasses.replace(t.config.raster, capture=replay_raster)
     out = t.model.render_hidden(t.scene.train[1], options, background=t.payloads[0].background,
-                                feature_grad=0.1, capture=capture, compact=compact)
+                                feature_grad=0.1, capture=capture, compact=compact, anchors=anchors)
     (out["image"] * weights).sum().backward()
     private = t.model.secrets[0]
     named = {"feat": t.model.anchors.feat, "scaling": t.model.anchors.scaling,
@@ -72,6 +73,30 @@ def test_the_replayed_decoding_renders_and_differentiates_as_the_eager_one():
         t.step()
     assert torch.isfinite(t.model.anchors.feat).all()
     assert t.evaluate_hidden()["psnr_hidden"] > before - 1.0
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
+def test_robust_training_replays_the_hidden_branch_and_matches_op_by_op():
+    """Robust training's dropout keeps the serving rows (``keep``), and feature noise changes values
+    only: the hidden branch is replayed as without attacks, with the same render and gradients."""
+    from securegs_warp.secure.robust import perturb
+    raster_graph._POOL.clear()
+    t = _trainer("cuda", robust="prune-random:0.5+noise-feat:0.3")
+    for _ in range(3):
+        t.step()
+    assert t.model._captured[0]._graphs, "robust training did not replay the decoder"
+    assert any(e.graphs for entries in raster_graph._POOL.values() for e in entries), \
+        "robust training did not replay the hidden rasterize"
+    weights = torch.rand(t.scene.train[1].height, t.scene.train[1].width, 3, device="cuda")
+    anchors = perturb(t.model.anchors, t.robust, torch.Generator().manual_seed(1))
+    assert not anchors.keep.all()
+    eager_image, eager = _render_and_grads(t, False, weights, False, anchors=anchors)
+    image, replayed = _render_and_grads(t, True, weights, False, replay_raster=True, anchors=anchors)
+    assert (image - eager_image).abs().max() < 1e-5
+    for name, g in eager.items():
+        assert (g is None) == (replayed[name] is None), name
+        if g is not None:
+            assert ((replayed[name] - g).abs().max() / g.abs().max().clamp_min(1e-12)) < 1e-4, name
 
 
 def test_on_the_cpu_the_option_renders_op_by_op():

@@ -71,6 +71,7 @@ def generate_neural_gaussians(
     rows: RowDecoder | None = None,
     anchor_index: torch.Tensor | None = None,
     compact: bool = True,
+    keep: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Decode the visible anchors into the Gaussians of one view, exactly as Scaffold-GS does.
 
@@ -104,6 +105,10 @@ def generate_neural_gaussians(
             below its alpha_min: the same render and gradients without the host synchronisation that
             counts the kept rows, for a caller that reads no per-Gaussian statistics of them. Those
             rows reach the rasterizer, which refuses non-finite values in any row it is given.
+        keep: [N] bool, the anchors whose Gaussians may pass the opacity test (None: all): the
+            others' rows are decoded and then fail it, so that dropping anchors (robust training's
+            pruning) leaves the row count as it is; the render and gradients are those of leaving
+            them out of ``visible_mask``.
 
     Returns:
         dict with M Gaussians of the Nv * k decoded (Gaussian j of the i-th visible anchor is entry
@@ -115,7 +120,8 @@ def generate_neural_gaussians(
         * ``anchor_index`` [M] long: the model anchor each Gaussian came from.
         * ``neural_opacity`` [Nv * k]: raw tanh opacities, negative ones included (densification's
           opacity statistics).
-        * ``mask`` [Nv * k] bool: opacity > 0, which of the decoded Gaussians were kept.
+        * ``mask`` [Nv * k] bool: opacity > 0 (and the anchor in ``keep``), which of the decoded
+          Gaussians were kept.
         * ``visible_mask`` [N] bool: the anchors decoded.
         * ``compacted``: ``compact`` (False: the M rows are the Nv * k, ``mask`` says which passed).
     """
@@ -146,6 +152,8 @@ def generate_neural_gaussians(
         neural_opacity, means, quats, scales, colors = rows(xyz, feat, log_scaling, camera_center.to(xyz))
 
     mask = neural_opacity > 0.0
+    if keep is not None:
+        mask = mask & keep[anchor_index].repeat_interleave(k)
     gaussians = {"means": means, "quats": quats, "scales": scales, "opacities": neural_opacity, "colors": colors}
     if compact:
         # The kept rows found once (one host synchronisation; each boolean-mask index costs one).

@@ -54,8 +54,8 @@ class SecureModel(ScaffoldModel):
         ``PerturbedAnchors`` (same rows; its ``keep`` mask drops anchors from the render).
         visible: [N] bool, the anchors of ``anchors`` visible from ``camera`` (``visible_anchor_mask``)
         when the caller has them already (the public render of the same view): not computed again.
-        capture: decode from CUDA graphs (``CapturedRows``) where that gives the same render: this
-        model's own anchors on CUDA, a box-frame key decoding its serving anchors, gradients enabled.
+        capture: decode from CUDA graphs (``CapturedRows``) where that gives the same render: a
+        box-frame key decoding its serving anchors (``fixed_rows``) on CUDA, gradients enabled.
         compact: False renders the Gaussians that fail the opacity test at opacity 0 instead of
         leaving them out (the same image and gradients, without a host synchronisation; the
         Gaussians' per-row statistics then count them, see ``generate_neural_gaussians``).
@@ -64,35 +64,43 @@ class SecureModel(ScaffoldModel):
         if private.decoder is None:
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
-        own = anchors is None
-        anchors = self.anchors if anchors is None else anchors
         rows = None
-        if capture and own and private.serves_by_radius and captured.replayable(anchors.xyz) and torch.is_grad_enabled():
+        if capture and self.fixed_rows(secret, anchors) and captured.replayable(self.anchors.xyz) \
+                and torch.is_grad_enabled():
             if secret not in self._captured or self._captured[secret].private is not private:
                 self._captured[secret] = captured.CapturedRows(private)
             rows = self._captured[secret]
-        mask, index = self._decoding_rows(private, anchors, camera, visible)
+        anchors = self.anchors if anchors is None else anchors
+        mask, index, keep = self._decoding_rows(private, anchors, camera, visible)
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
-                           anchor_mask=mask, anchor_index=index, rows=rows, compact=compact)
+                           anchor_mask=mask, anchor_index=index, rows=rows, compact=compact, keep=keep)
 
-    def _decoding_rows(self, private: PrivateHeads, anchors, camera,
-                       visible: torch.Tensor | None = None) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """([N] bool or None, [Nv] long or None): the anchors whose hidden Gaussians ``private``
-        decodes for ``camera`` (the box frame's serving anchors, else the visible ones; None:
-        render_view's visibility test), less those robust training drops
-        (``PerturbedAnchors.keep``), and their indices where the key keeps them (else None)."""
+    def fixed_rows(self, secret: int = 0, anchors=None) -> bool:
+        """Whether secret ``secret``'s hidden render of ``anchors`` (None: this model's own;
+        robust training's ``PerturbedAnchors``) decodes the same rows at every view until the key's
+        serving radius is refit: a box-frame key's serving anchors, found from this model's own
+        anchor positions (an attack on the positions moves them in and out of the radius)."""
+        return self._key(secret).serves_by_radius and (anchors is None or anchors.xyz is self.anchors.xyz)
+
+    def _decoding_rows(self, private: PrivateHeads, anchors, camera, visible: torch.Tensor | None = None) -> tuple:
+        """([N] bool or None, [Nv] long or None, [N] bool or None): the anchors whose hidden
+        Gaussians ``private`` decodes for ``camera`` (the box frame's serving anchors, else the
+        visible ones; None: render_view's visibility test), their indices where the key keeps them
+        (else None), and the anchors among them whose Gaussians may render (robust training's
+        ``PerturbedAnchors.keep``; None: all). The box frame keeps its serving rows and drops by
+        ``keep`` (a fixed row count); the anchor frame leaves dropped anchors out of the mask."""
         serving = private.serving_mask(anchors.xyz)
         keep = getattr(anchors, "keep", None)
-        if serving is not None and keep is None:
-            return serving, private.serving_index(anchors.xyz)
-        mask = visible if serving is None else serving
+        if serving is not None:
+            return serving, private.serving_index(anchors.xyz), keep
         if keep is None:
-            return mask, None
+            return visible, None, None
+        mask = visible
         if mask is None:
             viewmat, K = camera_tensors(camera, anchors.xyz.device)
             mask = visible_anchor_mask(anchors, viewmat, K, camera.width, camera.height)
-        return mask & keep, None
+        return mask & keep, None, None
 
     @torch.no_grad()
     def hidden_gaussians(self, camera, secret: int = 0) -> dict:

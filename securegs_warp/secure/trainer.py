@@ -161,11 +161,11 @@ class SecureTrainer(ScaffoldTrainer):
             # The Gaussians that fail the opacity test stay in the render at opacity 0 (a host
             # synchronisation fewer) unless the strategy reads the hidden Gaussians row by row.
             compact = self.strategy.reads_hidden
-            # Then a box-frame key's render of this model's own serving anchors has one row count
-            # until its radius is refit, and whole views one size: its rasterize replays from graphs
-            # on CUDA (a step whose view overflows the capacity is skipped, see ViewTrainer.step).
+            # Then a render of fixed rows (SecureModel.fixed_rows) has one row count until the radius
+            # is refit, and whole views one size: its rasterize replays from graphs on CUDA (a step
+            # whose view overflows the capacity is skipped, see ViewTrainer.step).
             replay = (self.secure.hidden_capture and self.device.type == "cuda" and not compact and crop is None
-                      and anchors is None and self.model.secrets[secret].serves_by_radius)
+                      and self.model.fixed_rows(secret, anchors))
             out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
                                      step=step, anchors=anchors, secret=secret, visible=visible,
                                      compact=compact, replay_raster=replay)
