@@ -165,9 +165,10 @@ class AttackContext:
 
 
 def random_prune_mask(n: int, fraction: float, generator: torch.Generator, device="cpu") -> torch.Tensor:
-    """[n] bool with exactly round(fraction·n) True entries at random places."""
-    mask = torch.zeros(n, dtype=torch.bool)
-    mask[torch.randperm(n, generator=generator)[: round(fraction * n)]] = True
+    """[n] bool on ``device`` with exactly round(fraction·n) True entries at random places (drawn
+    on ``generator``'s device)."""
+    mask = torch.zeros(n, dtype=torch.bool, device=generator.device)
+    mask[torch.randperm(n, generator=generator, device=generator.device)[: round(fraction * n)]] = True
     return mask.to(device)
 
 
@@ -180,9 +181,10 @@ def lowest_mask(score: torch.Tensor, fraction: float) -> torch.Tensor:
 
 def column_noise(values: torch.Tensor, strength: float, generator: torch.Generator) -> torch.Tensor:
     """Gaussian noise shaped like ``values`` [N, ...]: per column (each index past the first), σ is
-    ``strength`` times that column's standard deviation over the N rows (0 for a single row)."""
+    ``strength`` times that column's standard deviation over the N rows (0 for a single row). Drawn
+    on ``generator``'s device."""
     std = values.detach().std(dim=0, keepdim=True) if values.shape[0] > 1 else torch.zeros_like(values[:1])
-    noise = torch.randn(values.shape, generator=generator).to(values.device)
+    noise = torch.randn(values.shape, generator=generator, device=generator.device).to(values.device)
     return strength * std * noise
 
 

@@ -15,6 +15,7 @@ from securegs_warp.robustness import score_release, sweep
 from securegs_warp.scaffold_model import ScaffoldModel
 from securegs_warp.secure import SecureTrainer
 from securegs_warp.secure.container import KeyViews, open_container
+from securegs_warp.raster_cases import TEST_DEVICE
 from securegs_warp.secure.robust import PerturbedAnchors, parse_robust, perturb
 
 CPU_RASTER = RasterOptions(tile_size=8)
@@ -205,6 +206,14 @@ def test_mean_neighbour_distance_among_a_subset():
     among = torch.tensor([True, True, False, False])
     assert A.mean_neighbour_distance(xyz, 1, among).tolist() == [1.0, 1.0, 2.0, 9.0]
     assert A.mean_neighbour_distance(xyz, 1).tolist() == [1.0, 1.0, 2.0, 7.0]
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cuda", reason="device draws: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
+def test_perturb_draws_on_the_anchors_device_reproducibly():
+    anchors, attacks = tiny_model(n=1000).to("cuda").anchors, parse_robust("prune-random:0.5+noise-feat:0.3")
+    one, two = (perturb(anchors, attacks, torch.Generator().manual_seed(4)) for _ in range(2))
+    assert one.keep.is_cuda and torch.equal(one.keep, two.keep) and torch.equal(one.feat, two.feat)
+    assert not one.keep.all() and not torch.equal(one.feat, anchors.feat)
 
 
 def test_robust_training_perturbs_only_the_hidden_branch(scene, monkeypatch):

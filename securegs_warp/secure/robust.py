@@ -66,18 +66,19 @@ def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
     the view did not decode (needed by ``prune-opacity``)."""
     view = PerturbedAnchors(anchors.xyz, anchors.feat, anchors.offsets, anchors.scaling, anchors.rotation,
                             anchors.opacity)
+    draws = _device_generator(generator, view.xyz.device)
     for attack in attacks:
         u = float(torch.rand((), generator=generator))
         if attack.name.startswith("prune-"):
             if attack.name == "prune-random":
-                dropped = random_prune_mask(view.num_anchors, u * attack.args[0], generator, view.xyz.device)
+                dropped = random_prune_mask(view.num_anchors, u * attack.args[0], draws, view.xyz.device)
             else:
                 dropped = _least_opaque(public_opacity, u * attack.args[0])
             view.keep = ~dropped if view.keep is None else view.keep & ~dropped
         elif attack.name in ("noise-xyz", "noise-feat"):
             name = attack.name.removeprefix("noise-")
             values = getattr(view, name)
-            setattr(view, name, values + column_noise(values, u * attack.args[0], generator))
+            setattr(view, name, values + column_noise(values, u * attack.args[0], draws))
         else:  # quantize: straight through, so the parameters still get the gradient of the quantised values
             bits = attack.args[0] + int(u * (QUANTIZE_MAX_BITS - attack.args[0] + 1))
             for name in ("xyz", "feat", "scaling"):
@@ -85,6 +86,16 @@ def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
                 setattr(view, name, values + (quantize_columns(values.detach(), min(bits, QUANTIZE_MAX_BITS))
                                               - values.detach()))
     return view
+
+
+def _device_generator(generator: torch.Generator, device: torch.device) -> torch.Generator:
+    """``generator`` where it is on ``device``'s kind, else one there seeded from it: a step's masks
+    and noise drawn where the anchors are (drawing N·d normals on the host and copying them costs
+    milliseconds per step on CUDA), and still reproducible from ``generator``'s state."""
+    if torch.device(device).type == generator.device.type:
+        return generator
+    seed = int(torch.randint(2**62, (), generator=generator))
+    return torch.Generator(device).manual_seed(seed)
 
 
 def _least_opaque(public_opacity: torch.Tensor, fraction: float) -> torch.Tensor:

@@ -149,8 +149,12 @@ class SecureTrainer(ScaffoldTrainer):
             return extra  # a plain step between hidden ones (SecureConfig.hidden_stride)
         # Robust training: this step's hidden renders read randomly attacked anchors (the bits are
         # projected into every anchor after the update, see after_update).
-        anchors = perturb(self.model.anchors, self.robust, self.generator,
-                          public_opacity(branches["public"][0], self.model.anchors)) if self.robust else None
+        anchors = None
+        if self.robust:
+            # Only prune-opacity reads the public opacities (their scatter costs a host synchronisation).
+            opacity = public_opacity(branches["public"][0], self.model.anchors) \
+                if any(a.name == "prune-opacity" for a in self.robust) else None
+            anchors = perturb(self.model.anchors, self.robust, self.generator, opacity)
         for secret, p in enumerate(self.payloads):
             view = index if p.views is not None else p.image_view
             if view is None:
