@@ -12,6 +12,7 @@ A variant is ``MODE[:FIELD=VALUE]...``: the density mode (``rdo``, ``scaffold``,
 from __future__ import annotations
 
 import json
+import re
 import tempfile
 import time
 from pathlib import Path
@@ -36,10 +37,13 @@ COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ss
 
 
 def parse_variant(text: str, base: SecureConfig) -> tuple[str, SecureConfig]:
-    """``MODE[:FIELD=VALUE]...`` -> (row label, ``base`` with the mode and fields set).
+    """``MODE[:FIELD=VALUE]...`` -> (row label, ``base`` with the mode and fields set). A value may
+    hold colons (``cover:robust=prune-random:0.3+noise-feat:0.3``): options part only at a colon
+    that starts ``FIELD=``.
 
     Raises ValueError naming an unknown mode, a malformed option or an unknown field."""
-    mode, *options = text.split(":")
+    mode, _, rest = text.partition(":")
+    options = re.split(r":(?=[\w.]+=)", rest) if rest else []
     if mode not in MODES:
         raise ValueError(f"variant {text!r}: mode must be one of {', '.join(MODES)}, got {mode!r}")
     overrides = {"strategy.mode": mode}

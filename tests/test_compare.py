@@ -21,6 +21,9 @@ def test_variant_sets_fields_by_name():
     assert config.hdger is False and config.strategy.hidden_growth_at == "public" and config.payload == "object"
     assert label.startswith("SecureGS (global, r_down=2")
     assert math.isinf(parse_variant("rdo:hidden_tau_scale=inf", base)[1].strategy.hidden_tau_scale)
+    # A value with colons of its own (a robust spec) stays whole.
+    _, config = parse_variant("cover:robust=prune-random:0.3+noise-feat:0.3:bit_margin=0.25", base)
+    assert config.robust == "prune-random:0.3+noise-feat:0.3" and config.bit_margin == 0.25
 
 
 @pytest.mark.parametrize("text, message", [
