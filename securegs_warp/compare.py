@@ -4,8 +4,8 @@ What ``scripts/secure_vs_baseline.py`` reports and the README's fidelity and lea
 on: the variant syntax, the training loop that records what went wrong, the public PSNR outside and
 inside the hidden object's footprint, the release size, and the report tables.
 
-A variant is ``MODE[:FIELD=VALUE]...``: the density mode (``rdo``, ``scaffold``, ``global``,
-``shared``), then any ``SecureConfig`` field by name, or by dotted path when a name is not unique
+A variant is ``MODE[:FIELD=VALUE]...``: the density mode (``strategies.MODES``: ``cover``, ``rdo``,
+``scaffold``, ``global``, ``shared``), then any ``SecureConfig`` field by name, or by dotted path when a name is not unique
 (``hidden_weight=1``, ``hidden_feature_grad=0.3``, ``feature_grad_until=0.5``, ``hdger=false``,
 ``r_down=16``, ``hidden_tau_scale=inf``, ``strategy.hidden_growth_at=public``).
 """
@@ -33,7 +33,7 @@ SCENE_AND_BUDGET = ("hidden", "placement", "width", "height", "iterations")
 SCENE_ARRAYS = ("hidden_points", "scene_points")
 COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
            "ssim_hidden", "hidden_learnt", "bit_accuracy", "bit_accuracy_on_baseline", "fps_public",
-           "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps")
+           "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps", "incomplete_steps")
 
 
 def parse_variant(text: str, base: SecureConfig) -> tuple[str, SecureConfig]:
@@ -42,8 +42,8 @@ def parse_variant(text: str, base: SecureConfig) -> tuple[str, SecureConfig]:
     that starts ``FIELD=``.
 
     Raises ValueError naming an unknown mode, a malformed option or an unknown field."""
-    mode, _, rest = text.partition(":")
-    options = re.split(r":(?=[\w.]+=)", rest) if rest else []
+    mode, colon, rest = text.partition(":")
+    options = re.split(r":(?=[\w.]+=)", rest) if colon else []
     if mode not in MODES:
         raise ValueError(f"variant {text!r}: mode must be one of {', '.join(MODES)}, got {mode!r}")
     overrides = {"strategy.mode": mode}

@@ -1,8 +1,8 @@
 """``RasterOptions.capture``: ``rasterize`` replayed from Warp graphs for fixed-size loops.
 
 One ``_Captured`` per (device, N, C, image size, options) holds static copies of the inputs, one
-``RenderPlan`` over them and an intersection capacity fixed when it is made (the only host read of a
-count). The forward (projection, binning to the capacity with padding keys, blend) and the backward
+``RenderPlan`` over them and an intersection capacity: set from its first render's count (read on
+the host once), and grown only past a later render that overflowed it. The forward (projection, binning to the capacity with padding keys, blend) and the backward
 (blend adjoint, projection adjoint) are captured as Warp graphs on CUDA after a first direct run and
 replayed thereafter; on the CPU the same launches run directly.
 
@@ -10,9 +10,10 @@ The eager op learns the intersection count and the inputs' finiteness before it 
 synchronisation). A replay cannot: it copies both to host memory asynchronously, and the next forward
 of the same entry reads them after waiting for that earlier forward only (not for the work queued
 since). A non-finite input raises there. A count past the capacity (the render lacked some
-intersections) grows the capacity for the renders to come, and raises unless the caller already
-asked whether that render was complete (``info["complete"]``): a training loop that checks it can
-drop the step instead of stopping (``train.base.ViewTrainer.step``).
+intersections) grows that entry's capacity for the renders to come, and raises unless the caller
+already asked whether that render was complete (``info["complete"]``, which itself raises for a
+non-finite input): a training loop that asks can drop the step instead of stopping
+(``train.base.ViewTrainer.step``).
 
 Two renders of the same shape may be in flight at once (a public and a hidden render before one
 backward): an entry is leased from forward until its backward ran or its autograd graph was freed,
@@ -28,7 +29,8 @@ import warp as wp
 from .lease import Lease
 from .rasterizer import OUTPUT_NAMES, RasterOptions, RenderPlan, check_finite
 
-# Capacity = HEADROOM × the first render's intersections + SLACK: room for the scene to move.
+# Capacity = HEADROOM × the intersections of the first render (or of one that overflowed it) +
+# SLACK: room for the scene to move.
 HEADROOM = 1.25
 SLACK = 4096
 # Shapes kept: a loop whose N changes every call gains nothing from capture, and must not keep
@@ -97,18 +99,21 @@ class _Captured:
             else:
                 wp.capture_launch(graph, stream=wp.stream_from_torch(torch.cuda.current_stream()))
 
-    def check_pending(self) -> None:
+    def check_pending(self, grow: bool = True) -> None:
         """Read the last forward once it has finished: raise for a non-finite input; for an
-        overflow of the capacity, grow it past that render's count (its graphs are captured again)
-        and raise unless its caller asked ``complete()``."""
+        overflow of the capacity, grow it past that render's count (``grow``; its graphs are
+        captured again) and raise unless its caller asked ``complete()``."""
         render, self.pending = self.pending, None
         if render is None:
             return
         render.read()
         check_finite((render.names, render.finite))
         if render.needed > render.capacity:
-            self.plan.allocate_intersections(int(render.needed * HEADROOM) + SLACK)
-            self.graphs.clear()  # they sort into the old buffers
+            if grow:
+                # The old buffers may still be read by a queued replay: torch's allocator reuses
+                # them only after the work queued on its stream, the one every launch here uses.
+                self.plan.allocate_intersections(int(render.needed * HEADROOM) + SLACK)
+                self.graphs.clear()  # they sort into the old buffers
             if not render.asked:
                 raise RuntimeError(
                     f"a captured render needed {render.needed} tile intersections, more than the capacity of "
@@ -164,9 +169,11 @@ class _Render:
             self.needed, self.finite = int(self.count), self.flags.tolist()
 
     def complete(self) -> bool:
-        """Whether the capacity held every tile intersection of this render (waits for it only)."""
+        """Whether the capacity held every tile intersection of this render (waits for it only);
+        raises, as the eager op does, for a non-finite input."""
         self.asked = True
         self.read()
+        check_finite((self.names, self.finite))
         return self.needed <= self.capacity
 
 
@@ -180,7 +187,7 @@ def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Cap
         if idle is None:
             break
         for entry in _POOL.pop(idle):  # an evicted entry's last render is still checked
-            entry.check_pending()
+            entry.check_pending(grow=False)
     for entry in entries:
         if not entry.busy:
             return entry

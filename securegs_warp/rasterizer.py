@@ -68,9 +68,9 @@ class RasterOptions:
     # input shape, for loops that render the same N, C and image size again and again: no host
     # launches or synchronisations per render. The sort runs over a fixed intersection capacity (the
     # first render's count with headroom). A later render that needs more lacks intersections, which
-    # its info["complete"] tells; the next captured call of that shape grows the capacity, and raises
-    # if nobody asked. One with non-finite inputs raises there (securegs_warp/raster_graph.py). Same
-    # images and gradients as eager otherwise. On the CPU it runs the same fixed-capacity launches
+    # its info["complete"] tells; the next call of its pooled entry grows the capacity, and raises if
+    # nobody asked. One with non-finite inputs raises there, or at complete()
+    # (securegs_warp/raster_graph.py). Same images and gradients as eager otherwise. On the CPU it runs the same fixed-capacity launches
     # without a graph.
     capture: bool = False
     # CUDA launch shape only (results do not depend on it): threads per block of the forward and
@@ -233,7 +233,8 @@ def rasterize(
         ``width``, ``height``, ``depth`` [H, W, 1] when asked, and ``means2d_grad`` [N, 2], which the
         backward pass fills with dL/d means2d (pixels) for densification statistics. With
         ``capture`` also ``complete``: a function that waits for this render and tells whether its
-        intersections fit the capacity (False: the image lacks some; see ``raster_graph``).
+        intersections fit the capacity (False: the image lacks some; see ``raster_graph``), raising
+        for a non-finite input.
 
     Raises:
         ValueError: a tensor with the wrong shape, a non-finite value (naming the tensor), a bad

@@ -30,6 +30,7 @@ def test_variant_sets_fields_by_name():
     ("turbo", "mode must be one of"),
     ("rdo:lambda=1", "unknown option 'lambda'"),
     ("rdo:r_down", "not FIELD=VALUE"),
+    ("rdo:", "not FIELD=VALUE"),
     ("rdo:r_down=abc", "not a valid float"),
     ("rdo:r_down=0.5", "r_down must be >= 1"),
     ("rdo:hidden_feature_grad=2", r"hidden_feature_grad must lie in \[0, 1\]"),

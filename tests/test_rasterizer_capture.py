@@ -110,11 +110,24 @@ def test_capacity_overflow_told_by_complete_then_grown():
     assert info["complete"]() is False
     eager = render(large, False)
     assert not torch.equal(overflowed.cpu(), eager[0][0])  # it lacked intersections
+    (entry,) = [e for entries in raster_graph._POOL.values() for e in entries]
+    capacity = entry.plan.capacity
     # Asked, the overflow does not raise: the next render of the shape grows the capacity, is whole
     # and says so.
     _, _, info = rasterize(**leaves, **args)
     assert info["complete"]() is True
+    assert [e for entries in raster_graph._POOL.values() for e in entries] == [entry]
+    assert entry.plan.capacity > capacity
     assert_same(render(large, True), eager)
+
+
+def test_complete_raises_for_a_non_finite_input_naming_it():
+    bad = random_scene(17, n=70)
+    bad.scales[3, 1] = float("nan")
+    _, _, info = rasterize(**{name: getattr(bad, name) for name in DIFF_INPUTS}, viewmat=bad.viewmat, K=bad.K,
+                           width=bad.width, height=bad.height, capture=True)
+    with pytest.raises(ValueError, match="scales"):
+        info["complete"]()
 
 
 def test_non_finite_input_raises_naming_it():

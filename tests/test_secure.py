@@ -1,4 +1,5 @@
 """SecureGS: payloads, private heads, region-aware densification, the release/key split, reveal."""
+import collections
 import json
 
 import numpy as np
@@ -209,6 +210,30 @@ def test_robust_dropout_keeps_the_box_frames_rows_and_renders_as_leaving_them_ou
         assert set(grads) == set(reference_grads), how
         for name, g in reference_grads.items():
             assert (grads[name] - g).abs().max() <= 1e-5 * g.abs().max().clamp_min(1e-12), (how, name)
+
+
+def test_a_replayed_hidden_render_that_overflows_skips_its_step_and_training_goes_on(hidden_scene, monkeypatch):
+    """The replayed hidden rasterize (CUDA's path, run here by the CPU's direct launches) whose
+    capacity a view overflows: that step is skipped (no parameter moves), the capacity grows to what
+    the view needed, and the following steps train without raising."""
+    from securegs_warp import raster_graph
+    monkeypatch.setattr(raster_graph, "HEADROOM", 1.0)
+    monkeypatch.setattr(raster_graph, "SLACK", 0)
+    monkeypatch.setattr(SecureTrainer, "replays_hidden_raster", lambda self, *args: True)
+    monkeypatch.setattr(raster_graph, "_POOL", collections.OrderedDict())  # this test's renders only
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=20, raster=CPU_RASTER, densify=False),
+                            SecureConfig(payload="object"))
+    assert "incomplete_renders" not in trainer.step()
+    (entry,) = [e for entries in raster_graph._POOL.values() for e in entries]
+    entry.plan.allocate_intersections(64)  # less than any view of the scene needs
+    params = [p for group in trainer.optimizer.param_groups for p in group["params"]]
+    before = [p.detach().clone() for p in params]
+    assert trainer.step()["incomplete_renders"] == 1
+    assert all(torch.equal(p, old) for p, old in zip(params, before))
+    for _ in range(4):
+        assert "incomplete_renders" not in trainer.step()
+    assert entry.plan.capacity > 64 and trainer.step_count == 6
+    assert not all(torch.equal(p, old) for p, old in zip(params, before))
 
 
 @pytest.mark.parametrize("mode", ["cover", "rdo"])
@@ -541,6 +566,28 @@ def test_hidden_opacity_in_pruning_statistic_is_switchable(hidden_scene):
         trainer.step()
         accum[keeps] = trainer.strategy_state["opacity_accum"]
     assert (accum[True] >= accum[False]).all() and accum[True].sum() > accum[False].sum()
+
+
+def test_anchors_robust_training_drops_get_no_hidden_opacity_credit(hidden_scene, monkeypatch):
+    """In the box frame a dropped anchor's rows stay in the hidden decoding (``keep``); the pruning
+    statistic must still credit it nothing from the hidden render, as when it was left out."""
+    import securegs_warp.secure.model as secure_model
+    real, accum, keeps = secure_model.render_view, {}, {}
+    for credit in (True, False):
+        def spy(anchors, *args, credit=credit, **kwargs):
+            keeps[credit] = kwargs.get("keep")
+            return real(anchors, *args, **kwargs)
+        monkeypatch.setattr(secure_model, "render_view", spy)
+        config = TrainConfig(iterations=5, raster=CPU_RASTER)
+        trainer = SecureTrainer(hidden_scene, config, SecureConfig(
+            payload="object", robust="prune-random:0.9", hidden_frame="box", hidden_offsets=config.heads.n_offsets,
+            strategy=RegionAwareStrategy(mode="rdo", hidden_opacity_keeps=credit)))
+        trainer.step()
+        accum[credit] = trainer.strategy_state["opacity_accum"]
+    dropped = ~keeps[True]
+    assert torch.equal(keeps[True], keeps[False]) and dropped.any()
+    assert torch.equal(accum[True][dropped], accum[False][dropped])
+    assert accum[True].sum() > accum[False].sum()
 
 
 def _write_blender_folder(scene, folder):

@@ -18,6 +18,14 @@ from securegs_warp.secure.captured import CapturedRows
 from securegs_warp.train import TrainConfig
 
 
+@pytest.fixture(autouse=True)
+def fresh_pool():
+    """Each test sees only its own captured renders."""
+    raster_graph._POOL.clear()
+    yield
+    raster_graph._POOL.clear()
+
+
 def _trainer(device, capture=True, serving=60, robust=None):
     scene = make_synthetic_scene(hidden="mug", level="object", width=96, height=72, n_train=4, n_test=1,
                                  n_points=600, device=device)
@@ -80,7 +88,6 @@ def test_robust_training_replays_the_hidden_branch_and_matches_op_by_op():
     """Robust training's dropout keeps the serving rows (``keep``), and feature noise changes values
     only: the hidden branch is replayed as without attacks, with the same render and gradients."""
     from securegs_warp.secure.robust import perturb
-    raster_graph._POOL.clear()
     t = _trainer("cuda", robust="prune-random:0.5+noise-feat:0.3")
     for _ in range(3):
         t.step()

@@ -63,7 +63,9 @@ def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
     """One draw of ``attacks`` (from ``parse_robust``) on an ``AnchorModel``'s tensors, in order.
 
     public_opacity: [N] total public opacity of each anchor in this step's view, NaN for anchors
-    the view did not decode (needed by ``prune-opacity``)."""
+    the view did not decode (needed by ``prune-opacity``). The strengths are drawn from
+    ``generator``; masks and noise on the anchors' device, from a generator there seeded from it
+    (``generator`` itself where the anchors are on its device)."""
     view = PerturbedAnchors(anchors.xyz, anchors.feat, anchors.offsets, anchors.scaling, anchors.rotation,
                             anchors.opacity)
     draws = _device_generator(generator, view.xyz.device)

@@ -165,14 +165,9 @@ class SecureTrainer(ScaffoldTrainer):
             # The Gaussians that fail the opacity test stay in the render at opacity 0 (a host
             # synchronisation fewer) unless the strategy reads the hidden Gaussians row by row.
             compact = self.strategy.reads_hidden
-            # Then a render of fixed rows (SecureModel.fixed_rows) has one row count until the radius
-            # is refit, and whole views one size: its rasterize replays from graphs on CUDA (a step
-            # whose view overflows the capacity is skipped, see ViewTrainer.step).
-            replay = (self.secure.hidden_capture and self.device.type == "cuda" and not compact and crop is None
-                      and self.model.fixed_rows(secret, anchors))
             out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
-                                     step=step, anchors=anchors, secret=secret, visible=visible,
-                                     compact=compact, replay_raster=replay)
+                                     step=step, anchors=anchors, secret=secret, visible=visible, compact=compact,
+                                     replay_raster=self.replays_hidden_raster(secret, anchors, compact, crop))
             target = p.views[view] if p.views is not None else p.image
             share = 1.0
             if crop is not None:
@@ -185,6 +180,15 @@ class SecureTrainer(ScaffoldTrainer):
         if hidden:
             branches["hidden"] = hidden
         return extra
+
+    def replays_hidden_raster(self, secret: int, anchors, compact: bool, crop: Crop | None) -> bool:
+        """Whether a training step's hidden render of secret ``secret`` rasterizes with
+        ``RasterOptions.capture``: on CUDA with ``hidden_capture``, for an uncompacted render of
+        fixed rows (``SecureModel.fixed_rows``) at whole views, one shape step after step until the
+        serving radius is refit (a step whose view overflows the capacity is skipped, see
+        ``ViewTrainer.step``)."""
+        return (self.secure.hidden_capture and self.device.type == "cuda" and not compact and crop is None
+                and self.model.fixed_rows(secret, anchors))
 
     def _hidden_crop(self, secret: int, view: int) -> Crop | None:
         """The part of training view ``view`` that secret ``secret``'s hidden render is trained on
