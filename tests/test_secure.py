@@ -556,6 +556,12 @@ def test_hidden_growth_threshold_scale(hidden_scene, tau_scale):
                       payload="object", strategy=RegionAwareStrategy(hidden_tau_scale=0.5)))
 
 
+def test_a_mode_reading_hidden_rows_refuses_another_hidden_k(hidden_scene):
+    with pytest.raises(ValueError, match=r"hidden_offsets = k \(10\), got 32"):
+        SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(
+                      payload="object", hidden_frame="box", strategy=RegionAwareStrategy(mode="rdo")))
+
+
 def test_hidden_opacity_in_pruning_statistic_is_switchable(hidden_scene):
     """By default the hidden Gaussians' opacity counts toward keeping an anchor; with
     hidden_opacity_keeps=False pruning sees the public opacity alone (same first step otherwise)."""

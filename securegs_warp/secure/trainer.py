@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from .. import evaluation
-from ..config import SecureConfig, TrainConfig
+from ..config import BOX_FRAME_DEFAULTS, SecureConfig, TrainConfig
 from ..data import Camera, SceneData
 from ..kept import Kept
 from ..train.losses import psnr
@@ -97,6 +97,11 @@ class SecureTrainer(ScaffoldTrainer):
 
     def _make_private(self, heads, payload: Payload, bit_seed: str | None, bit_cell: float) -> PrivateHeads:
         options = self.secure.private_options(payload.spec.kind, self.strategy.mode)
+        k_hidden = options.get("n_hidden") or heads.n_offsets
+        if self.strategy.reads_hidden and k_hidden != heads.n_offsets:
+            raise ValueError(f"the {self.strategy.mode} mode keeps the hidden Gaussians' statistics in the public "
+                             f"offset slots: it needs hidden_offsets = k ({heads.n_offsets}), got {k_hidden} (the "
+                             "box frame's default is " f"{BOX_FRAME_DEFAULTS['n_hidden']}; pass --hidden-offsets)")
         private = PrivateHeads(heads, message=message_string(payload.bits), bit_seed=bit_seed,
                                bit_cell=None if payload.bits is None else bit_cell,
                                offsets=self.secure.hdger, hidden=payload.has_images, **options)
