@@ -5,8 +5,8 @@ on: the variant syntax, the training loop that records what went wrong, the publ
 inside the hidden object's footprint, the release size, and the report tables.
 
 A variant is ``MODE[:FIELD=VALUE]...``: the density mode (``strategies.MODES``: ``cover``, ``rdo``,
-``scaffold``, ``global``, ``shared``), then any ``SecureConfig`` field by name, or by dotted path when a name is not unique
-(``hidden_weight=1``, ``hidden_feature_grad=0.3``, ``feature_grad_until=0.5``, ``hdger=false``,
+``scaffold``, ``global``, ``shared``), then any ``SecureConfig`` field by name, or by dotted path
+when a name is not unique (``hidden_weight=1``, ``hidden_feature_grad=0.3``, ``feature_grad_until=0.5``, ``hdger=false``,
 ``r_down=16``, ``hidden_tau_scale=inf``, ``strategy.hidden_growth_at=public``).
 """
 from __future__ import annotations

@@ -2,9 +2,10 @@
 
 One ``_Captured`` per (device, N, C, image size, options) holds static copies of the inputs, one
 ``RenderPlan`` over them and an intersection capacity: set from its first render's count (read on
-the host once), and grown only past a later render that overflowed it. The forward (projection, binning to the capacity with padding keys, blend) and the backward
-(blend adjoint, projection adjoint) are captured as Warp graphs on CUDA after a first direct run and
-replayed thereafter; on the CPU the same launches run directly.
+the host once), and grown only past a later render that overflowed it. The forward (projection,
+binning to the capacity with padding keys, blend) and the backward (blend adjoint, projection
+adjoint) are captured as Warp graphs on CUDA after a first direct run and replayed thereafter; on
+the CPU the same launches run directly.
 
 The eager op learns the intersection count and the inputs' finiteness before it sorts (one host
 synchronisation). A replay cannot: it copies both to host memory asynchronously, and the next forward

@@ -101,7 +101,7 @@ class SecureTrainer(ScaffoldTrainer):
         if self.strategy.reads_hidden and k_hidden != heads.n_offsets:
             raise ValueError(f"the {self.strategy.mode} mode keeps the hidden Gaussians' statistics in the public "
                              f"offset slots: it needs hidden_offsets = k ({heads.n_offsets}), got {k_hidden} (the "
-                             "box frame's default is " f"{BOX_FRAME_DEFAULTS['n_hidden']}; pass --hidden-offsets)")
+                             f"box frame's default is {BOX_FRAME_DEFAULTS['n_hidden']}; pass --hidden-offsets)")
         private = PrivateHeads(heads, message=message_string(payload.bits), bit_seed=bit_seed,
                                bit_cell=None if payload.bits is None else bit_cell,
                                offsets=self.secure.hdger, hidden=payload.has_images, **options)
