@@ -99,9 +99,7 @@ class RegionAwareStrategy(ScaffoldStrategy):
         self.accumulate(state, *branches["public"], k)
         for g_hid, info_hid, weight in (branches.get("hidden", []) if self.reads_hidden else []):
             if self.hidden_opacity_keeps:  # an anchor that only serves the hidden branch is still useful
-                # The kept Gaussians' opacities summed by anchor: a row that failed the opacity test,
-                # or whose anchor robust training dropped (``keep``), adds nothing.
-                state["opacity_accum"].index_add_(0, g_hid["anchor_index"], g_hid["opacities"].detach())
+                self.add_opacity(state, g_hid)
             scale = 1.0 / weight if self.hidden_grad_per_lambda and weight > 0 else 1.0
             if self.mode in ("scaffold", "shared"):  # one gradient for both branches, every step
                 self.accumulate(state, g_hid, info_hid, k, opacity=False, grad_scale=scale)

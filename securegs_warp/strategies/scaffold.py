@@ -91,8 +91,7 @@ class ScaffoldStrategy:
             raise ValueError("the statistics are per kept Gaussian: decode with compact=True")
         visible = gaussians["visible_mask"]
         if opacity:
-            neural = gaussians["neural_opacity"].detach().clamp_min(0.0).view(-1, k)
-            state["opacity_accum"][visible] += neural.sum(dim=1)
+            ScaffoldStrategy.add_opacity(state, gaussians)
             state["anchor_denom"][visible] += 1
         rows = torch.zeros_like(state[prefix + "grad_denom"], dtype=torch.bool)
         rows[visible.repeat_interleave(k)] = gaussians["mask"]
@@ -102,6 +101,16 @@ class ScaffoldStrategy:
         state[prefix + "grad_accum"][rows] += grad_scale * ndc_grad_norms(info)[rendered]
         state[prefix + "grad_denom"][rows] += 1
         return rows, rendered
+
+    @staticmethod
+    def add_opacity(state: dict, gaussians: dict) -> None:
+        """Add each anchor's kept Gaussians' opacities to ``opacity_accum`` (Scaffold-GS's sum of
+        its positive neural opacities): a row that failed the opacity test, or whose anchor was
+        dropped (``generate_neural_gaussians``'s ``keep``), adds nothing, compacted or not."""
+        opacities = gaussians["opacities"].detach()
+        if not gaussians["compacted"]:
+            opacities = torch.where(gaussians["mask"], opacities, torch.zeros_like(opacities))
+        state["opacity_accum"].index_add_(0, gaussians["anchor_index"], opacities)
 
     # -- hooks ----------------------------------------------------------------------------------
 
