@@ -103,3 +103,32 @@ def test_set_reaches_any_field_and_names_bad_ones(tmp_path, capsys):
     assert "FIELD=VALUE" in capsys.readouterr().err
     assert main(args + ["--force", "--set", "feature_lr=fast"]) == 2
     assert "train.feature_lr" in capsys.readouterr().err
+
+
+def test_robust_training_is_on_by_default_only_for_an_object_in_the_cover_mode():
+    from securegs_warp.config import BIT_MARGIN, ROBUST_BIT_MARGIN, ROBUST_RECIPE
+
+    secure = SecureConfig()
+    assert secure.robust_spec(["object", "bits"], "cover") == ROBUST_RECIPE
+    assert secure.robust_spec(["object"], "rdo") is None and secure.robust_spec(["image"], "rdo") is None
+    assert secure.margin(True) == ROBUST_BIT_MARGIN and secure.margin(False) == BIT_MARGIN
+    off = apply_overrides(secure, {"robust": "none"})
+    assert off.robust is None and off.robust_spec(["object"], "cover") is None
+    given = apply_overrides(secure, {"robust": "noise-feat:0.2", "bit_margin": "2"})
+    assert given.robust_spec(["image"], "rdo") == "noise-feat:0.2" and given.margin(True) == 2.0
+    with pytest.raises(ValueError, match="robust"):
+        apply_overrides(secure, {"robust": "noise-offset:0.1"})
+
+
+def test_hide_records_the_robust_training_and_margin_it_chose(tmp_path):
+    """config.json holds the resolved choice, so that a later default cannot change a resumed run."""
+    for payload, robust, margin, extra in (("object", "prune-random:0.3+noise-feat:0.3", 0.25, []),
+                                           ("object", None, 1.0, ["--robust", "none"]),
+                                           ("bits:8", None, 1.0, [])):
+        out = tmp_path / f"run_{payload}_{len(extra)}"
+        args = ["hide", "--out", str(out), "--iterations", "2", "--quiet", "--payload", payload, *TINY, *extra]
+        assert main(args) == 0
+        saved = json.loads((out / "config.json").read_text())["secure"]
+        assert (saved["robust"], saved["bit_margin"]) == (robust, margin)
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert (metrics["robust"], metrics["bit_margin"]) == (robust, margin)

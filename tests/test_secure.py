@@ -664,4 +664,4 @@ def test_after_update_refits_serving_and_bits_when_anchors_change(hidden_scene):
         private.fix_serving(anchors.xyz)
     logits, bit = private.bit_logits(anchors.feat.detach(), anchors.xyz)
     sign = trainer.payload.bits.float()[bit] * 2 - 1
-    assert float((sign * logits).min()) >= trainer.secure.bit_margin - 1e-4
+    assert float((sign * logits).min()) >= trainer.bit_margin - 1e-4
