@@ -42,9 +42,9 @@ def main():
     parser.add_argument("--payload", default=SecureConfig().payload)
     parser.add_argument("--mode", default="rdo", help="the SecureGS trainers, comma-separated, each a density mode "
                                                       "with options MODE[:FIELD=VALUE]... (rdo: the paper's, as in "
-                                                      "docs/results.md's profiles; cover: an object's default; e.g. "
-                                                      "cover:hidden_capture=false, or robust training: "
-                                                      "cover:bit_margin=0.25:robust=prune-random:0.3+noise-feat:0.3)")
+                                                      "docs/results.md's profiles; cover: an object's default, with "
+                                                      "its robust training; e.g. cover:hidden_capture=false, or "
+                                                      "without robust training: cover:robust=none)")
     parser.add_argument("--count-ops", action="store_true", help="also count what a step launches, by section")
     parser.add_argument("--syncs", action="store_true", help="also name where a step waits for the device (CUDA)")
     parser.add_argument("--no-timing", dest="timing", action="store_false", help="skip the timed steps")

@@ -6,7 +6,8 @@ trained first (the demo's budget: object + 48 bits, 400 iterations, on the built
 robustness.csv / .json / .md and robustness.png (one panel per attack: hidden PSNR and bit accuracy
 against strength, a line per container, its unattacked level dashed) into --out.
 
-    python scripts/robustness.py runs/demo runs/robust --labels default,robust --out runs/robustness
+    python scripts/robustness.py runs/demo runs/norobust --labels default,no-robust --out runs/robustness
+        (runs/norobust: the demo's command with --robust none, the default before robust training)
     python scripts/robustness.py --out runs/robustness          # trains runs/robustness/container first
     python scripts/robustness.py RUN --attacks prune-random,noise-feat
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from securegs_warp.cli.common import quiet_warp
-from securegs_warp.config import SceneSpec, SecureConfig
+from securegs_warp.config import BIT_MARGIN, SceneSpec, SecureConfig
 from securegs_warp.io.atomic import atomic_write
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure.verification_study import KINDS, plot_histogram, summary, train_model, verification_rows
@@ -37,7 +37,7 @@ def main():
     ap.add_argument("--plain-seeds", type=int, default=8, help="plain models per scene (seeds 0..N-1)")
     ap.add_argument("--container-seeds", type=int, default=6, help="containers per scene (seeds 0..N-1)")
     ap.add_argument("--bits", type=int, default=48)
-    ap.add_argument("--bit-margin", type=float, default=SecureConfig().bit_margin)
+    ap.add_argument("--bit-margin", type=float, default=BIT_MARGIN)
     ap.add_argument("--prunings", type=int, default=5,
                     help="random prunings and feature shuffles of each container")
     ap.add_argument("--prune-fraction", type=float, default=0.2)

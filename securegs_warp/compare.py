@@ -61,8 +61,8 @@ def train(trainer, label: str) -> dict:
     """Run the trainer's whole budget. Returns ``nonfinite_steps`` (steps with a non-finite gradient,
     skipped by the trainer), ``nonfinite_at`` ([step, [parameter groups at fault]] of each),
     ``incomplete_steps`` (steps skipped because a captured render overflowed its intersection
-    capacity) and ``train_psnr_per_100`` (the mean training-view PSNR of every 100 steps, to see when
-    a run went wrong)."""
+    capacity), ``train_psnr_per_100`` (the mean training-view PSNR of every 100 steps, to see when
+    a run went wrong) and, for SecureGS, the ``robust`` training and ``bit_margin`` it resolved."""
     t0 = time.perf_counter()
     nonfinite_at, trace, window = [], [], []
     incomplete = 0
@@ -78,8 +78,12 @@ def train(trainer, label: str) -> dict:
     print(f"{label}: {trainer.config.iterations} steps in {time.perf_counter() - t0:.0f} s, "
           f"{trainer.model.anchors.num_anchors} anchors, {len(nonfinite_at)} steps with non-finite gradients "
           f"{nonfinite_at or ''}, {incomplete} with an incomplete captured render", flush=True)
-    return {"nonfinite_steps": len(nonfinite_at), "nonfinite_at": nonfinite_at, "incomplete_steps": incomplete,
-            "train_psnr_per_100": trace}
+    out = {"nonfinite_steps": len(nonfinite_at), "nonfinite_at": nonfinite_at, "incomplete_steps": incomplete,
+           "train_psnr_per_100": trace}
+    secure = getattr(trainer, "secure", None)
+    if secure is not None:  # a variant's label leaves the defaults it resolved unsaid
+        out.update(robust=secure.robust, bit_margin=secure.bit_margin)
+    return out
 
 
 class RegionErrors:

@@ -214,7 +214,8 @@ class SecureConfig:
     bit_margin: after every step each anchor feature is moved the least distance that makes its
         vote's logit agree with its bit by this much (secure/keyed_bits.py; 1: sigmoid 0.73). The
         bits live in the public anchor features, so a larger margin costs the cover fidelity.
-        None: ROBUST_BIT_MARGIN in a run that trains robustly, BIT_MARGIN otherwise (``margin``).
+        None: ROBUST_BIT_MARGIN where ``robust`` "auto" chose ROBUST_RECIPE, BIT_MARGIN otherwise
+        (``margin``).
     bit_cell_voxels: the edge, in base voxels, of the keyed grid whose cells deal the anchors among
         the bits (the key stores the edge in scene units): an anchor keeps its bit while its position
         moves by less than its distance to a cell face, so a coarser grid survives larger position
@@ -225,7 +226,7 @@ class SecureConfig:
     robust: attacks the hidden branch trains against, joined with + (``secure.robust``:
         ``prune-random:F``, ``noise-xyz:S``, ``noise-feat:S``, ``quantize:B``; strengths drawn each
         step up to the given value); None: none; "auto": ROBUST_RECIPE for a run that hides an object
-        in the cover mode, none otherwise (``robust_spec``). The public branch is untouched.
+        (and bits) in the cover mode, none otherwise (``robust_spec``). The public branch is untouched.
     strategy: the region-aware density strategy and its mode (rdo, scaffold, global, shared, cover;
         None: ``strategy_mode`` chooses).
     hidden_frame: where the private F_o† places hidden Gaussians (``PrivateHeads``): "anchor" (the
@@ -266,10 +267,10 @@ class SecureConfig:
     hidden_feature_grad: float = 0.1
     hidden_scaling_grad: float = 1.0
     feature_grad_until: float = 1.0
+    robust: str | None = "auto"
     bit_margin: float | None = None
     bit_cell_voxels: float = 4.0
     hdger: bool = True
-    robust: str | None = "auto"
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
     hidden_frame: str | None = None
     hidden_offsets: int | None = None
@@ -292,19 +293,28 @@ class SecureConfig:
         return "cover" if "object" in kinds else "rdo"
 
     def robust_spec(self, kinds, mode: str) -> str | None:
-        """The attacks a run whose secrets hide ``kinds`` in density ``mode`` (``strategy_mode``)
-        trains against: ``robust``, with "auto" resolved. Robust training is measured on hidden
-        objects in the cover mode only; an image or scene in the RDO mode decodes from the visible
-        anchors, where dropout changes the rows every step."""
+        """The attacks a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each) in density
+        ``mode`` (``strategy_mode``) trains against: ``robust``, with "auto" resolved. The recipe is
+        measured on an object (and its bits) in the cover mode only; an image or scene decodes from
+        the visible anchors, where dropout changes the rows every step."""
         if self.robust != "auto":
             return self.robust
-        return ROBUST_RECIPE if mode == "cover" and "object" in kinds else None
+        measured = mode == "cover" and "object" in kinds and all(kind in ("object", "bits") for kind in kinds)
+        return ROBUST_RECIPE if measured else None
 
-    def margin(self, robust: bool) -> float:
-        """``bit_margin``, or its default for a run that does (``robust``) or does not train robustly."""
+    def margin(self, kinds, mode: str) -> float:
+        """``bit_margin``, or its default for such a run: the recipe's where "auto" chose the recipe
+        (``robust_spec``), BIT_MARGIN otherwise (an explicit ``robust`` keeps it: nothing else
+        was measured with 0.25)."""
         if self.bit_margin is not None:
             return self.bit_margin
-        return ROBUST_BIT_MARGIN if robust else BIT_MARGIN
+        return ROBUST_BIT_MARGIN if self.robust == "auto" and self.robust_spec(kinds, mode) else BIT_MARGIN
+
+    def resolved(self, kinds, mode: str) -> "SecureConfig":
+        """This config with ``robust`` and ``bit_margin`` as a run hiding ``kinds`` in ``mode`` uses
+        them (what config.json and a checkpoint record, so that a later default cannot change a
+        resumed run)."""
+        return dataclasses.replace(self, robust=self.robust_spec(kinds, mode), bit_margin=self.margin(kinds, mode))
 
     def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,

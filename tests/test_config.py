@@ -110,25 +110,38 @@ def test_robust_training_is_on_by_default_only_for_an_object_in_the_cover_mode()
 
     secure = SecureConfig()
     assert secure.robust_spec(["object", "bits"], "cover") == ROBUST_RECIPE
-    assert secure.robust_spec(["object"], "rdo") is None and secure.robust_spec(["image"], "rdo") is None
-    assert secure.margin(True) == ROBUST_BIT_MARGIN and secure.margin(False) == BIT_MARGIN
+    assert secure.margin(["object", "bits"], "cover") == ROBUST_BIT_MARGIN
+    # not where it was not measured: the RDO mode, or an image decoded from the visible anchors
+    for kinds, mode in ((["object"], "rdo"), (["image"], "rdo"), (["image", "object"], "cover"), (["bits"], "rdo")):
+        assert secure.robust_spec(kinds, mode) is None and secure.margin(kinds, mode) == BIT_MARGIN
     off = apply_overrides(secure, {"robust": "none"})
-    assert off.robust is None and off.robust_spec(["object"], "cover") is None
-    given = apply_overrides(secure, {"robust": "noise-feat:0.2", "bit_margin": "2"})
-    assert given.robust_spec(["image"], "rdo") == "noise-feat:0.2" and given.margin(True) == 2.0
+    assert off.robust is None and off.resolved(["object"], "cover") == apply_overrides(off, {"bit_margin": "1"})
+    # an explicit recipe keeps the margin the run asked for, or the plain default
+    given = apply_overrides(secure, {"robust": "noise-feat:0.2"})
+    assert given.robust_spec(["bits"], "rdo") == "noise-feat:0.2" and given.margin(["bits"], "rdo") == BIT_MARGIN
+    assert apply_overrides(given, {"bit_margin": "2"}).margin(["object"], "cover") == 2.0
     with pytest.raises(ValueError, match="robust"):
         apply_overrides(secure, {"robust": "noise-offset:0.1"})
 
 
-def test_hide_records_the_robust_training_and_margin_it_chose(tmp_path):
-    """config.json holds the resolved choice, so that a later default cannot change a resumed run."""
+def test_hide_records_the_robust_training_and_margin_it_chose(tmp_path, capsys):
+    """config.json holds the resolved choice, so that a later default cannot change a resumed run;
+    a run recorded without robust training (as every run before it was the default) resumes with
+    --robust none, and without it is refused, naming the field."""
+    runs = {}
     for payload, robust, margin, extra in (("object", "prune-random:0.3+noise-feat:0.3", 0.25, []),
                                            ("object", None, 1.0, ["--robust", "none"]),
                                            ("bits:8", None, 1.0, [])):
         out = tmp_path / f"run_{payload}_{len(extra)}"
         args = ["hide", "--out", str(out), "--iterations", "2", "--quiet", "--payload", payload, *TINY, *extra]
         assert main(args) == 0
+        runs[(payload, len(extra))] = args
         saved = json.loads((out / "config.json").read_text())["secure"]
         assert (saved["robust"], saved["bit_margin"]) == (robust, margin)
         metrics = json.loads((out / "metrics.json").read_text())
         assert (metrics["robust"], metrics["bit_margin"]) == (robust, margin)
+    capsys.readouterr()
+    old = runs[("object", 2)][:-2]  # the run without robust training, resumed without the flag
+    assert main(old + ["--resume"]) == 2
+    assert "secure.robust" in capsys.readouterr().err
+    assert main(old + ["--resume", "--robust", "none"]) == 0

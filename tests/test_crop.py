@@ -111,8 +111,6 @@ def test_only_the_cover_mode_crops(monkeypatch):
     scene = make_synthetic_scene(hidden="mug", level="object", width=96, height=72, n_train=2, n_test=1, n_points=300)
     secure = apply_overrides(SecureConfig(payload="object"), {"strategy.mode": "rdo", "hidden_frame": "box",
                                                               "hidden_offsets": 10, "hidden_width": 8,
-                                                              "hidden_crop": True,
-                                                              # the crop and the whole view must read the same anchors
-                                                              "robust": None})  # rdo reads k = 10 rows
+                                                              "hidden_crop": True})  # rdo reads k = 10 rows
     t = SecureTrainer(scene, TrainConfig(iterations=4, raster=RasterOptions(tile_size=8)), secure)
     assert t.model.private.frame == "box" and t._hidden_crop(0, 0) is None

@@ -129,8 +129,9 @@ def test_hidden_render_of_the_public_view_reuses_its_visibility_test(hidden_scen
     it would have found them itself; the visibility test then runs once per step, not twice."""
     import securegs_warp.render as render_module
 
+    # The anchor frame decodes the visible anchors (the cover mode's box frame decodes its serving ones).
     trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=10, raster=CPU_RASTER),
-                            SecureConfig(payload="object+bits:48"))
+                            SecureConfig(payload="object+bits:48", strategy=RegionAwareStrategy(mode="rdo")))
     cam = hidden_scene.train[2]
     public = trainer.render(cam, camera_index=2)
     shared = trainer.render_hidden(cam, camera_index=2, visible=public["gaussians"]["visible_mask"])
@@ -221,8 +222,9 @@ def test_a_replayed_hidden_render_that_overflows_skips_its_step_and_training_goe
     monkeypatch.setattr(raster_graph, "SLACK", 0)
     monkeypatch.setattr(SecureTrainer, "replays_hidden_raster", lambda self, *args: True)
     monkeypatch.setattr(raster_graph, "_POOL", collections.OrderedDict())  # this test's renders only
+    # No robust training: its dropout would change the intersections a view needs from step to step.
     trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=20, raster=CPU_RASTER, densify=False),
-                            SecureConfig(payload="object"))
+                            SecureConfig(payload="object", robust=None))
     assert "incomplete_renders" not in trainer.step()
     (entry,) = [e for entries in raster_graph._POOL.values() for e in entries]
     entry.plan.allocate_intersections(64)  # less than any view of the scene needs
@@ -664,4 +666,4 @@ def test_after_update_refits_serving_and_bits_when_anchors_change(hidden_scene):
         private.fix_serving(anchors.xyz)
     logits, bit = private.bit_logits(anchors.feat.detach(), anchors.xyz)
     sign = trainer.payload.bits.float()[bit] * 2 - 1
-    assert float((sign * logits).min()) >= trainer.bit_margin - 1e-4
+    assert float((sign * logits).min()) >= trainer.secure.bit_margin - 1e-4

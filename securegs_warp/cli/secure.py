@@ -75,7 +75,7 @@ SECURE_FLAGS = (
      "share of the hidden loss's gradient reaching the public anchor scalings, 0 to 1 (the paper's 1)"),
     ("--bit-margin", "secure.bit_margin", "logit margin by which every anchor's vote must agree with its bit (the "
                                           "bits live in the public anchor features: higher costs the cover; None: "
-                                          "0.25 with robust training, 1 without)"),
+                                          "0.25 with the automatic robust training, 1 otherwise)"),
     ("--bit-cell", "secure.bit_cell_voxels", "edge of the keyed grid cells that deal anchors among the bits, in "
                                              "voxels (larger: bits survive larger position changes; smaller: more "
                                              "independent voters per bit)"),
@@ -86,7 +86,8 @@ SECURE_FLAGS = (
     ("--robust", "secure.robust", "attacks the hidden payload trains against, joined with + (prune-random:F, "
                                   "noise-xyz:S, noise-feat:S, quantize:B; strengths drawn each step up to these); the "
                                   "cover's render is untouched; none: no robust training; auto: "
-                                  "prune-random:0.3+noise-feat:0.3 for an object in the cover mode, none otherwise"),
+                                  "prune-random:0.3+noise-feat:0.3 for an object (and bits) in the cover mode, none "
+                                  "otherwise"),
     ("--hidden-tau-scale", "secure.strategy.hidden_tau_scale",
      "RDO: anchors serving only the hidden payload grow at τ_fix times this (larger shows less of a hidden "
      "object's shape in the release and renders it less well)"),
@@ -203,10 +204,10 @@ def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
         raise CommandError(f"--hide {scene.hidden}: payload {payload!r} hides no object or scene")
     # config.json records the mode, the robust training and the bit margin the payload chose, so
     # that a later default cannot change a resumed run.
-    mode = config.secure.strategy_mode([spec.kind for spec in specs])
-    robust = config.secure.robust_spec([spec.kind for spec in specs], mode)
-    secure = dataclasses.replace(config.secure, strategy=dataclasses.replace(config.secure.strategy, mode=mode),
-                                 robust=robust, bit_margin=config.secure.margin(robust is not None))
+    kinds = [spec.kind for spec in specs]
+    mode = config.secure.strategy_mode(kinds)
+    secure = dataclasses.replace(config.secure.resolved(kinds, mode),
+                                 strategy=dataclasses.replace(config.secure.strategy, mode=mode))
     return dataclasses.replace(config, scene=scene, secure=secure)
 
 
@@ -291,8 +292,8 @@ def finish_container(trainer, run: RunFolder, config: RunConfig, secrets: list[S
         metrics.update({"key_file" + suffix: path.name if path.parent == run.path else str(path),
                         "payload" + suffix: p.spec.describe()})
     metrics.update(anchors=trainer.model.anchors.num_anchors, train_seconds=round(trainer.train_seconds, 2),
-                   mode=trainer.strategy.mode, robust="+".join(a.text for a in trainer.robust) or None,
-                   bit_margin=trainer.bit_margin, hidden_anchors=int(trainer.strategy_state["is_hidden"].sum()))
+                   mode=trainer.strategy.mode, robust=trainer.secure.robust,
+                   bit_margin=trainer.secure.bit_margin, hidden_anchors=int(trainer.strategy_state["is_hidden"].sum()))
     scene = trainer.scene
     if scene.hidden_points is not None:
         radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0)))

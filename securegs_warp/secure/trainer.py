@@ -50,13 +50,12 @@ class SecureTrainer(ScaffoldTrainer):
 
     secure: the SecureGS options (payloads, λ, gradient shares, HDGER, density strategy); its
     strategy's schedule is scaled to ``config.iterations``. Attributes beyond the base class:
-    ``secure``, ``payloads`` (each secret's hidden targets, in the order of ``model.secrets``),
-    ``robust`` (the attacks the hidden branch trains against, ``SecureConfig.robust_spec``) and
-    ``bit_margin`` (``SecureConfig.margin``).
+    ``secure`` (with its robust training and bit margin resolved, ``SecureConfig.resolved``),
+    ``payloads`` (each secret's hidden targets, in the order of ``model.secrets``) and ``robust``
+    (the attacks the hidden branch trains against, parsed).
     """
 
     def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
-        self.secure = secure
         # Built before the model, so that a payload the scene cannot carry fails before training.
         self.payloads = [build_payload(spec, scene, torch.device(device)) for spec in parse_secrets(secure.payload)]
         if not secure.hdger and sum(p.has_images for p in self.payloads) > 1:
@@ -70,9 +69,8 @@ class SecureTrainer(ScaffoldTrainer):
         self.bit_seeds = [new_seed() if p.bits is not None else None for p in self.payloads]
         kinds = [p.spec.kind for p in self.payloads]
         strategy = dataclasses.replace(secure.strategy.scaled_to(config.iterations), mode=secure.strategy_mode(kinds))
-        robust = secure.robust_spec(kinds, strategy.mode)
-        self.robust = parse_robust(robust) if robust else []
-        self.bit_margin = secure.margin(bool(self.robust))
+        self.secure = secure = secure.resolved(kinds, strategy.mode)
+        self.robust = parse_robust(secure.robust) if secure.robust else []
         strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
                              and any(p.spec.kind in ("object", "image") for p in self.payloads))
         self.strategy = strategy  # the private heads, built with the model, read its mode
@@ -238,7 +236,7 @@ class SecureTrainer(ScaffoldTrainer):
         feat = anchors.feat.detach()
         for _ in range(PROJECTION_ROUNDS if len(decoders) > 1 else 1):
             for decoder, projection in zip(decoders, projections):
-                feat = decoder.project(feat, anchors.xyz, self.bit_margin, projection)
+                feat = decoder.project(feat, anchors.xyz, self.secure.bit_margin, projection)
         anchors.feat.copy_(feat)
 
     # -- evaluation -----------------------------------------------------------------------------
