@@ -187,9 +187,9 @@ class StegaNeRFConfig:
 # the hidden object (the key keeps the radius that takes them in), through MLPs `width` wide
 # (docs/results.md, "Geometric security", measures them).
 BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1}
-# Robust training of a hidden object in the cover mode, on unless ``robust`` is given: the recipe
-# that survived 20% random pruning, feature noise 0.1 and 20% purify at 1080p and at the demo's
-# budget, with the bit margin it was measured with (docs/results.md, "Robust training by default").
+# What ``robust`` "auto" trains a hidden object in the cover mode against, and the bit margin it
+# was measured with: the payload then survives random pruning, feature noise and purify for no
+# training time (docs/results.md, "Robust training by default").
 ROBUST_RECIPE = "prune-random:0.3+noise-feat:0.3"
 ROBUST_BIT_MARGIN = 0.25
 BIT_MARGIN = 1.0

@@ -204,9 +204,9 @@ def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
         raise CommandError(f"--hide {scene.hidden}: payload {payload!r} hides no object or scene")
     # config.json records the mode, the robust training and the bit margin the payload chose, so
     # that a later default cannot change a resumed run.
-    kinds = [spec.kind for spec in specs]
-    mode = config.secure.strategy_mode(kinds)
-    secure = dataclasses.replace(config.secure.resolved(kinds, mode),
+    secret_kinds = [spec.kind for spec in specs]
+    mode = config.secure.strategy_mode(secret_kinds)
+    secure = dataclasses.replace(config.secure.resolved(secret_kinds, mode),
                                  strategy=dataclasses.replace(config.secure.strategy, mode=mode))
     return dataclasses.replace(config, scene=scene, secure=secure)
 
