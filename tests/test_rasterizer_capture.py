@@ -26,12 +26,15 @@ def render(scene, capture, backward=True, seed=5, **options):
 
 
 def assert_same(captured, eager):
+    """Forward outputs bit for bit; gradients to float32 accumulation: on CUDA they are summed by
+    atomics in no fixed order, so an element's error scales with the largest terms summed into the
+    tensor, not with the element itself (an element of 0.14 once differed by 2.7e-6 on an H100)."""
     (a, n_a), (b, n_b) = captured, eager
     assert n_a == n_b
     for x, y in zip(a[:7], b[:7]):
         assert torch.equal(x, y)
     for x, y in zip(a[7:], b[7:]):
-        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6 + 1e-5 * float(y.abs().max() if y.numel() else 0))
 
 
 @pytest.fixture(autouse=True)
