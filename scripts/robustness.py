@@ -10,6 +10,7 @@ against strength, a line per container, its unattacked level dashed) into --out.
         (runs/norobust: the demo's command with --robust none, the default before robust training)
     python scripts/robustness.py --out runs/robustness          # trains runs/robustness/container first
     python scripts/robustness.py RUN --attacks prune-random,noise-feat
+    python scripts/robustness.py RUN --attacks prune-random --draws 3   # three random prunings per strength
 
 The PNG needs matplotlib (``pip install -e ".[plots]"``).
 """
@@ -33,6 +34,9 @@ def main():
     ap.add_argument("--labels", help="comma-separated names of the runs (default: the folder names)")
     ap.add_argument("--attacks", default=",".join(SWEEP), help=f"attacks to sweep (default: all: {','.join(SWEEP)})")
     ap.add_argument("--seed", type=int, default=0, help="random source of the attacks")
+    ap.add_argument("--draws", type=int, default=1,
+                    help="runs of each attack that draws randomly (pruning at random, noise, purify), "
+                         "seeded --seed, --seed+1, ...; the tables add the mean and worst over them")
     ap.add_argument("--out", default="runs/robustness")
     ap.add_argument("--device", help="where to render and attack (default: CUDA when present, else the CPU)")
     args = ap.parse_args()
@@ -48,6 +52,8 @@ def main():
     labels = args.labels.split(",") if args.labels else [r.name for r in runs]
     if len(labels) != len(runs):
         raise SystemExit(f"--labels names {len(labels)} runs, {len(runs)} given")
+    if args.draws < 1:
+        raise SystemExit(f"--draws must be at least 1, got {args.draws}")
     unknown = sorted(set(args.attacks.split(",")) - set(SWEEP))
     if unknown:
         raise SystemExit(f"unknown attacks {unknown}; known: {', '.join(SWEEP)}")
@@ -59,8 +65,8 @@ def main():
     for label, run in zip(labels, runs):
         models[label], meta = open_container(run / "public", run / PLAIN_KEY, device=device)
         views[label] = KeyViews.from_metadata(meta, device)
-    meta = {"runs": [str(r) for r in runs], "labels": labels, "seed": args.seed, "date": time.strftime("%Y-%m-%d"),
-            "device": str(device)}
+    meta = {"runs": [str(r) for r in runs], "labels": labels, "seed": args.seed, "draws": args.draws,
+            "date": time.strftime("%Y-%m-%d"), "device": str(device)}
     rows = []
 
     def report(row):
@@ -71,7 +77,7 @@ def main():
         write_sweep(out, rows, meta)
 
     sweep(models, views, scene, {name: SWEEP[name] for name in args.attacks.split(",")}, seed=args.seed,
-          train=configs[0].train, on_row=report)
+          train=configs[0].train, on_row=report, draws=args.draws)
     print(write_sweep(out, rows, meta))
     plot_sweep(out / "robustness.png", rows)
     print(f"wrote {out / 'robustness.png'}")

@@ -133,6 +133,12 @@ class Attack:
     def needs_scene(self) -> bool:
         return self.name == "finetune"
 
+    @property
+    def draws_randomly(self) -> bool:
+        """Whether it reads ``AttackContext.generator`` (another seed attacks other anchors or adds
+        other noise); the rest give the same release for any seed."""
+        return self.name in ("prune-random", "noise-xyz", "noise-feat", "noise-offset", "purify")
+
 
 def parse_attacks(specs) -> list[Attack]:
     """Parse every spec (strings) before anything runs; an empty list is refused."""

@@ -104,17 +104,21 @@ def attacked_copy(model: SecureModel, attacks: list[Attack], ctx: AttackContext)
 
 def sweep(models: dict[str, SecureModel], views: dict[str, KeyViews], scene: SceneData | None,
           attacks: dict[str, list[str]] | None = None, seed: int = 0, train: TrainConfig | None = None,
-          on_row=None) -> list[dict]:
+          on_row=None, draws: int = 1) -> list[dict]:
     """Every attack of ``attacks`` (default SWEEP: name -> specs) at each strength on each model
     (label -> SecureModel opened with its key; ``views[label]`` its key's views). One row per
-    (model, spec) with SCORE_KEYS, plus a row per model with ``spec`` "none" (the unattacked
-    scores, ``psnr_hidden`` None). Each attack starts from the unattacked model, with the random
-    source seeded by ``seed``. ``on_row(row)`` sees each row as it is made."""
+    (model, spec, draw) with SCORE_KEYS, plus a row per model with ``spec`` "none" (the unattacked
+    scores, ``psnr_hidden`` None). Each attack starts from the unattacked model. An attack that
+    draws randomly (``Attack.draws_randomly``) runs ``draws`` times, draw d with the random source
+    seeded by ``seed + d`` (which anchors a pruning removes moves the hidden loss as much as the
+    training seed does); the others run once, as draw 0. ``on_row(row)`` sees each row as it is made."""
+    if draws < 1:
+        raise ValueError(f"draws must be at least 1, got {draws}")
     rows = []
     for label, model in models.items():
         v = views[label]
         reference = reference_hidden(model, v)
-        rows.append({"model": label, "attack": "none", "spec": "none", "strength": 0.0,
+        rows.append({"model": label, "attack": "none", "spec": "none", "strength": 0.0, "draw": 0,
                      **score_release(model, v, None, scene)})
         if on_row:
             on_row(rows[-1])
@@ -123,15 +127,41 @@ def sweep(models: dict[str, SecureModel], views: dict[str, KeyViews], scene: Sce
                 attack = Attack.parse(spec)
                 if attack.needs_scene and scene is None:
                     continue
-                ctx = AttackContext(v.hidden or v.cameras, v.raster, v.background,
-                                    torch.Generator().manual_seed(seed), scene, train or TrainConfig())
-                attacked, reports = attacked_copy(model, [attack], ctx)
-                rows.append({"model": label, "attack": name, "spec": spec, "strength": strength_of(attack),
-                             **score_release(attacked, v, reference, scene),
-                             "applicable": reports[0]["applicable"]})
-                if on_row:
-                    on_row(rows[-1])
+                for draw in range(draws if attack.draws_randomly else 1):
+                    ctx = AttackContext(v.hidden or v.cameras, v.raster, v.background,
+                                        torch.Generator().manual_seed(seed + draw), scene, train or TrainConfig())
+                    attacked, reports = attacked_copy(model, [attack], ctx)
+                    rows.append({"model": label, "attack": name, "spec": spec, "strength": strength_of(attack),
+                                 "draw": draw, **score_release(attacked, v, reference, scene),
+                                 "applicable": reports[0]["applicable"]})
+                    if on_row:
+                        on_row(rows[-1])
     return rows
+
+
+def summarize_draws(rows: list[dict]) -> list[dict]:
+    """One row per (model, spec) of ``sweep``'s rows, in their order: ``draws`` (how many), and for
+    the hidden PSNR (against the true hidden views where known, else against the unattacked render)
+    its mean and worst over the draws (``psnr_hidden_mean``, ``psnr_hidden_worst``), the loss
+    against the model's unattacked level (``drop_mean``, ``drop_worst``, dB; None without truth),
+    and the worst bit accuracy (``bit_accuracy_worst``)."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["model"], r["spec"]), []).append(r)
+    key = "psnr_hidden_truth" if any(r.get("psnr_hidden_truth") is not None for r in rows) else "psnr_hidden"
+    base = {m: r[key] for (m, spec), (r, *_) in groups.items() if spec == "none"}
+    out = []
+    for (model, spec), these in groups.items():
+        psnr = [r[key] for r in these if r[key] is not None]
+        bits = [r["bit_accuracy"] for r in these if r["bit_accuracy"] is not None]
+        mean, worst = (float(np.mean(psnr)), min(psnr)) if psnr else (None, None)
+        level = base.get(model)
+        out.append({"model": model, "spec": spec, "draws": len(these), "psnr_hidden_mean": mean,
+                    "psnr_hidden_worst": worst,
+                    "drop_mean": None if mean is None or level is None or key != "psnr_hidden_truth" else mean - level,
+                    "drop_worst": None if worst is None or level is None or key != "psnr_hidden_truth" else worst - level,
+                    "bit_accuracy_worst": min(bits) if bits else None})
+    return out
 
 
 def strength_of(attack: Attack) -> float:
@@ -142,15 +172,23 @@ def strength_of(attack: Attack) -> float:
 
 def write_sweep(out: Path, rows: list[dict], meta: dict) -> str:
     """robustness.csv, robustness.json and robustness.md in ``out`` (atomically); returns the
-    markdown table."""
-    columns = ("model", "spec", *SCORE_KEYS)
+    markdown: the rows' table, and where an attack ran more than one draw, ``summarize_draws``'s
+    table after it (also under ``summary`` in the JSON)."""
     fmt = lambda v: "" if v is None else (f"{v:.4g}" if isinstance(v, float) else str(v))  # noqa: E731
+
+    def markdown(columns, items):
+        return "\n".join(["| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
+                         + ["| " + " | ".join(fmt(r.get(c)) or "–" for c in columns) + " |" for r in items])
+
+    columns = ("model", "spec", "draw", *SCORE_KEYS)
     csv = "\n".join([",".join(columns)] + [",".join(fmt(r.get(c)) for c in columns) for r in rows]) + "\n"
-    table = "\n".join(["| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
-                      + ["| " + " | ".join(fmt(r.get(c)) or "–" for c in columns) + " |" for r in rows])
+    table = markdown(columns, rows)
+    summary = summarize_draws(rows)
+    if any(s["draws"] > 1 for s in summary):
+        table += "\n\nOver the draws of each attack:\n\n" + markdown(tuple(summary[0]), summary)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / "robustness.csv", lambda f: f.write(csv.encode()))
-    data = json.dumps({"meta": meta, "rows": rows}, indent=1).encode()
+    data = json.dumps({"meta": meta, "rows": rows, "summary": summary}, indent=1).encode()
     atomic_write(out / "robustness.json", lambda f: f.write(data))
     atomic_write(out / "robustness.md", lambda f: f.write((table + "\n").encode()))
     return table
@@ -158,8 +196,9 @@ def write_sweep(out: Path, rows: list[dict], meta: dict) -> str:
 
 def plot_sweep(path: Path, rows: list[dict]) -> None:
     """One column per attack: hidden PSNR (against the true hidden views where known, else against
-    the unattacked render), bit accuracy and cover PSNR against strength, one line per model, its
-    unattacked level dashed. Needs matplotlib (the ``plots`` extra)."""
+    the unattacked render), bit accuracy and cover PSNR against strength, one line per model (the
+    mean over an attack's draws, shaded between their worst and best), its unattacked level dashed.
+    Needs matplotlib (the ``plots`` extra)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -181,11 +220,14 @@ def plot_sweep(path: Path, rows: list[dict]) -> None:
         for j, label in enumerate(models):
             these = [r for r in rows if r["model"] == label and r["attack"] == name]
             base = next(r for r in rows if r["model"] == label and r["attack"] == "none")
-            x = [r["strength"] for r in these]
+            x = list(dict.fromkeys(r["strength"] for r in these))
             for ax, (key, _) in zip(column, panels):
                 scale = 100.0 if key == "bit_accuracy" else 1.0
-                y = [np.nan if r[key] is None else scale * r[key] for r in these]
-                ax.plot(x, y, "o-" if len(x) > 1 else "o", color=f"C{j}", label=label)
+                y = [[np.nan if r[key] is None else scale * r[key] for r in these if r["strength"] == at]
+                     for at in x]
+                ax.plot(x, [np.mean(v) for v in y], "o-" if len(x) > 1 else "o", color=f"C{j}", label=label)
+                if any(len(v) > 1 for v in y):
+                    ax.fill_between(x, [np.min(v) for v in y], [np.max(v) for v in y], color=f"C{j}", alpha=0.2)
                 if base[key] is not None:
                     ax.axhline(scale * base[key], color=f"C{j}", ls="--", lw=0.8)
                 ax.ticklabel_format(axis="y", useOffset=False)

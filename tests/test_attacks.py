@@ -11,7 +11,7 @@ from securegs_warp.config import SecureConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.model import AnchorModel, ScaffoldHeads
 from securegs_warp.rasterizer import RasterOptions
-from securegs_warp.robustness import score_release, sweep
+from securegs_warp.robustness import score_release, summarize_draws, sweep
 from securegs_warp.scaffold_model import ScaffoldModel
 from securegs_warp.secure import SecureTrainer
 from securegs_warp.secure.container import KeyViews, open_container
@@ -291,6 +291,27 @@ def test_sweep_rows_and_scores(container, scene):
     assert rows[1]["anchors"] > rows[2]["anchors"] and rows[1]["psnr_hidden"] > rows[2]["psnr_hidden"]
 
 
+def test_sweep_draws_repeat_only_random_attacks(container):
+    model, meta = open_container(container / "public", container / "key.safetensors")
+    views = KeyViews.from_metadata(meta, "cpu")
+    attacks = {"prune-random": ["prune-random:0.3"], "quantize": ["quantize:6"]}
+    rows = sweep({"c": model}, {"c": views}, None, attacks, seed=4, draws=3)
+    assert [(r["spec"], r["draw"]) for r in rows] == [("none", 0), ("prune-random:0.3", 0), ("prune-random:0.3", 1),
+                                                     ("prune-random:0.3", 2), ("quantize:6", 0)]
+    # draw d is the single run seeded seed + d; other draws prune other anchors
+    alone = sweep({"c": model}, {"c": views}, None, {"prune-random": ["prune-random:0.3"]}, seed=5)
+    assert alone[1]["psnr_hidden"] == rows[2]["psnr_hidden"]
+    assert len({r["psnr_hidden"] for r in rows[1:4]}) == 3
+    summary = {s["spec"]: s for s in summarize_draws(rows)}
+    pruned = summary["prune-random:0.3"]
+    assert pruned["draws"] == 3 and summary["quantize:6"]["draws"] == 1
+    assert pruned["psnr_hidden_worst"] == min(r["psnr_hidden"] for r in rows[1:4])
+    assert pruned["psnr_hidden_mean"] == pytest.approx(sum(r["psnr_hidden"] for r in rows[1:4]) / 3)
+    assert pruned["drop_mean"] is None  # no true hidden views without the scene
+    with pytest.raises(ValueError, match="draws must be at least 1"):
+        sweep({"c": model}, {"c": views}, None, attacks, draws=0)
+
+
 def test_sweep_files_and_plot(tmp_path):
     pytest.importorskip("matplotlib")
     from securegs_warp.robustness import plot_sweep, write_sweep
@@ -301,7 +322,12 @@ def test_sweep_files_and_plot(tmp_path):
             for m in ("a", "b") for a, s, x in (("none", "none", 0.0), ("prune-random", "prune-random:0.1", 0.1),
                                                ("prune-random", "prune-random:0.2", 0.2), ("half", "half", 1.0))]
     table = write_sweep(tmp_path, rows, {"seed": 0})
-    assert table.count("\n") == len(rows) + 1 and "| a | prune-random:0.1 | 39 |" in table
-    assert (tmp_path / "robustness.csv").read_text().splitlines()[0].startswith("model,spec,psnr_hidden")
+    assert table.count("\n") == len(rows) + 1 and "| a | prune-random:0.1 | – | 39 |" in table
+    # a second draw of one attack: the rows' table, then the mean and worst over the draws
+    rows.append({**rows[1], "draw": 1, "psnr_hidden_truth": 28.9})
+    table = write_sweep(tmp_path, rows, {"seed": 0})
+    assert "Over the draws of each attack" in table
+    assert "| a | prune-random:0.1 | 2 | 29.4 | 28.9 | -0.6 | -1.1 | 1 |" in table
+    assert (tmp_path / "robustness.csv").read_text().splitlines()[0].startswith("model,spec,draw,psnr_hidden")
     plot_sweep(tmp_path / "r.png", rows)
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
