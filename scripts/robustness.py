@@ -36,7 +36,8 @@ def main():
     ap.add_argument("--seed", type=int, default=0, help="random source of the attacks")
     ap.add_argument("--draws", type=int, default=1,
                     help="runs of each attack that draws randomly (pruning at random, noise, purify), "
-                         "seeded --seed, --seed+1, ...; the tables add the mean and worst over them")
+                         "seeded --seed, --seed+1, ...; the tables add the mean and worst over them. Each "
+                         "purify draw renders every view again: the sweep's slowest attack after finetune")
     ap.add_argument("--out", default="runs/robustness")
     ap.add_argument("--device", help="where to render and attack (default: CUDA when present, else the CPU)")
     args = ap.parse_args()

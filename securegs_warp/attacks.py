@@ -135,8 +135,9 @@ class Attack:
 
     @property
     def draws_randomly(self) -> bool:
-        """Whether it reads ``AttackContext.generator`` (another seed attacks other anchors or adds
-        other noise); the rest give the same release for any seed."""
+        """Whether it reads ``AttackContext.generator`` (another seed attacks other anchors, adds
+        other noise or clusters from another start); the rest give the same release for any seed
+        (``finetune`` draws its views from ``AttackContext.train``'s seed instead)."""
         return self.name in ("prune-random", "noise-xyz", "noise-feat", "noise-offset", "purify")
 
 

@@ -29,6 +29,8 @@ from .secure.model import SecureModel
 PSNR_IDENTICAL = 100.0
 SCORE_KEYS = ("psnr_hidden", "ssim_hidden", "psnr_hidden_truth", "ssim_hidden_truth", "bit_accuracy", "psnr_public",
               "ssim_public", "anchors")
+SUMMARY_KEYS = ("model", "spec", "draws", "against", "psnr_hidden_mean", "psnr_hidden_worst", "delta_mean",
+                "delta_worst", "bit_accuracy_worst")
 
 # Each attack's strengths in the sweep, weakest first.
 SWEEP = {
@@ -110,8 +112,8 @@ def sweep(models: dict[str, SecureModel], views: dict[str, KeyViews], scene: Sce
     (model, spec, draw) with SCORE_KEYS, plus a row per model with ``spec`` "none" (the unattacked
     scores, ``psnr_hidden`` None). Each attack starts from the unattacked model. An attack that
     draws randomly (``Attack.draws_randomly``) runs ``draws`` times, draw d with the random source
-    seeded by ``seed + d`` (which anchors a pruning removes moves the hidden loss as much as the
-    training seed does); the others run once, as draw 0. ``on_row(row)`` sees each row as it is made."""
+    seeded by ``seed + d``, so that a goal can be read on the mean or the worst of them
+    (``summarize_draws``); the others run once, as draw 0. ``on_row(row)`` sees each row as it is made."""
     if draws < 1:
         raise ValueError(f"draws must be at least 1, got {draws}")
     rows = []
@@ -140,27 +142,28 @@ def sweep(models: dict[str, SecureModel], views: dict[str, KeyViews], scene: Sce
 
 
 def summarize_draws(rows: list[dict]) -> list[dict]:
-    """One row per (model, spec) of ``sweep``'s rows, in their order: ``draws`` (how many), and for
-    the hidden PSNR (against the true hidden views where known, else against the unattacked render)
-    its mean and worst over the draws (``psnr_hidden_mean``, ``psnr_hidden_worst``), the loss
-    against the model's unattacked level (``drop_mean``, ``drop_worst``, dB; None without truth),
-    and the worst bit accuracy (``bit_accuracy_worst``)."""
+    """One row per (model, spec) of ``sweep``'s rows, in their order, with SUMMARY_KEYS: ``draws``
+    (the rows), ``against`` (what the hidden PSNR is scored against: "truth", the true hidden views,
+    where the model's rows have them, else "unattacked", its unattacked render), that PSNR's mean
+    and worst over the draws that have it, their change from the model's unattacked level in dB
+    (``delta_mean``, ``delta_worst``: negative is lost; None against "unattacked", whose level is
+    the reference itself) and the worst bit accuracy."""
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         groups.setdefault((r["model"], r["spec"]), []).append(r)
-    key = "psnr_hidden_truth" if any(r.get("psnr_hidden_truth") is not None for r in rows) else "psnr_hidden"
-    base = {m: r[key] for (m, spec), (r, *_) in groups.items() if spec == "none"}
+    key = {m: "psnr_hidden_truth" if any(r["model"] == m and r.get("psnr_hidden_truth") is not None for r in rows)
+           else "psnr_hidden" for m, _ in groups}
+    level = {m: these[0][key[m]] for (m, spec), these in groups.items() if spec == "none"}
     out = []
     for (model, spec), these in groups.items():
-        psnr = [r[key] for r in these if r[key] is not None]
+        psnr = [r[key[model]] for r in these if r[key[model]] is not None]
         bits = [r["bit_accuracy"] for r in these if r["bit_accuracy"] is not None]
         mean, worst = (float(np.mean(psnr)), min(psnr)) if psnr else (None, None)
-        level = base.get(model)
-        out.append({"model": model, "spec": spec, "draws": len(these), "psnr_hidden_mean": mean,
-                    "psnr_hidden_worst": worst,
-                    "drop_mean": None if mean is None or level is None or key != "psnr_hidden_truth" else mean - level,
-                    "drop_worst": None if worst is None or level is None or key != "psnr_hidden_truth" else worst - level,
-                    "bit_accuracy_worst": min(bits) if bits else None})
+        base = level.get(model)
+        change = lambda v: None if v is None or base is None else v - base  # noqa: E731
+        out.append(dict(zip(SUMMARY_KEYS, (model, spec, len(these), "truth" if key[model] == "psnr_hidden_truth"
+                                           else "unattacked", mean, worst, change(mean), change(worst),
+                                           min(bits) if bits else None))))
     return out
 
 
@@ -185,7 +188,7 @@ def write_sweep(out: Path, rows: list[dict], meta: dict) -> str:
     table = markdown(columns, rows)
     summary = summarize_draws(rows)
     if any(s["draws"] > 1 for s in summary):
-        table += "\n\nOver the draws of each attack:\n\n" + markdown(tuple(summary[0]), summary)
+        table += "\n\nOver the draws of each attack:\n\n" + markdown(SUMMARY_KEYS, summary)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / "robustness.csv", lambda f: f.write(csv.encode()))
     data = json.dumps({"meta": meta, "rows": rows, "summary": summary}, indent=1).encode()
@@ -219,16 +222,17 @@ def plot_sweep(path: Path, rows: list[dict]) -> None:
         column = [axes[3 * (i // cols) + p, i % cols] for p in range(3)]
         for j, label in enumerate(models):
             these = [r for r in rows if r["model"] == label and r["attack"] == name]
-            base = next(r for r in rows if r["model"] == label and r["attack"] == "none")
-            x = list(dict.fromkeys(r["strength"] for r in these))
+            base = next((r for r in rows if r["model"] == label and r["attack"] == "none"), None)
+            specs = list(dict.fromkeys(r["spec"] for r in these))  # a spec's draws share its strength
+            x = [next(r["strength"] for r in these if r["spec"] == spec) for spec in specs]
             for ax, (key, _) in zip(column, panels):
                 scale = 100.0 if key == "bit_accuracy" else 1.0
-                y = [[np.nan if r[key] is None else scale * r[key] for r in these if r["strength"] == at]
-                     for at in x]
+                y = [[scale * r[key] for r in these if r["spec"] == spec and r[key] is not None] or [np.nan]
+                     for spec in specs]
                 ax.plot(x, [np.mean(v) for v in y], "o-" if len(x) > 1 else "o", color=f"C{j}", label=label)
                 if any(len(v) > 1 for v in y):
-                    ax.fill_between(x, [np.min(v) for v in y], [np.max(v) for v in y], color=f"C{j}", alpha=0.2)
-                if base[key] is not None:
+                    ax.fill_between(x, [min(v) for v in y], [max(v) for v in y], color=f"C{j}", alpha=0.2)
+                if base is not None and base[key] is not None:
                     ax.axhline(scale * base[key], color=f"C{j}", ls="--", lw=0.8)
                 ax.ticklabel_format(axis="y", useOffset=False)
         column[0].set_title(name)

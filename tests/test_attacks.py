@@ -149,6 +149,17 @@ def test_export_roundtrip_is_not_applicable_and_finetune_needs_the_scene(scene):
         A.apply_attacks(model, A.parse_attacks(["finetune:2"]), ctx(scene))
 
 
+@pytest.mark.parametrize("spec", ["prune-random:0.2", "prune-opacity:0.2", "noise-xyz:0.01", "noise-feat:0.1",
+                                  "noise-offset:0.1", "sor:8:1", "quantize:6", "half", "purify:0.2",
+                                  "export-roundtrip", "finetune:1"])
+def test_draws_randomly_names_the_attacks_that_read_the_random_source(scene, spec):
+    generator = torch.Generator().manual_seed(0)
+    context = A.AttackContext(scene.test, CPU_RASTER, None, generator, scene, TrainConfig(iterations=1))
+    before = generator.get_state()
+    A.apply_attack(tiny_model(d=32, k=10), A.Attack.parse(spec), context)
+    assert A.Attack.parse(spec).draws_randomly == (not torch.equal(generator.get_state(), before))
+
+
 def test_finetune_changes_the_public_mlps_only_through_training(scene):
     model = tiny_model(d=32, k=10)
     before = model.heads.color_mlp[0].weight.detach().clone()
@@ -307,7 +318,7 @@ def test_sweep_draws_repeat_only_random_attacks(container):
     assert pruned["draws"] == 3 and summary["quantize:6"]["draws"] == 1
     assert pruned["psnr_hidden_worst"] == min(r["psnr_hidden"] for r in rows[1:4])
     assert pruned["psnr_hidden_mean"] == pytest.approx(sum(r["psnr_hidden"] for r in rows[1:4]) / 3)
-    assert pruned["drop_mean"] is None  # no true hidden views without the scene
+    assert pruned["against"] == "unattacked" and pruned["delta_mean"] is None  # no true hidden views without the scene
     with pytest.raises(ValueError, match="draws must be at least 1"):
         sweep({"c": model}, {"c": views}, None, attacks, draws=0)
 
@@ -327,7 +338,7 @@ def test_sweep_files_and_plot(tmp_path):
     rows.append({**rows[1], "draw": 1, "psnr_hidden_truth": 28.9})
     table = write_sweep(tmp_path, rows, {"seed": 0})
     assert "Over the draws of each attack" in table
-    assert "| a | prune-random:0.1 | 2 | 29.4 | 28.9 | -0.6 | -1.1 | 1 |" in table
+    assert "| a | prune-random:0.1 | 2 | truth | 29.4 | 28.9 | -0.6 | -1.1 | 1 |" in table
     assert (tmp_path / "robustness.csv").read_text().splitlines()[0].startswith("model,spec,draw,psnr_hidden")
     plot_sweep(tmp_path / "r.png", rows)
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
