@@ -260,9 +260,6 @@ class SecureConfig:
         training's attacks on anchor positions, ``noise-xyz`` and ``quantize`` (which move the
         serving set every step), evaluation (no gradients) and the CPU decode op by op, as
         everything does with it off.
-    hidden_survivors: in the box frame, render the hidden Gaussians of a decoding that lost serving
-        anchors (a pruned release; robust training's dropout) more opaque, as the lost ones were
-        there (``PrivateHeads`` ``survivors``; the key records it).
     """
 
     payload: str = "object+bits:48"
@@ -284,7 +281,6 @@ class SecureConfig:
     hidden_crop: bool = False
     hidden_stride: int = 1
     hidden_capture: bool = True
-    hidden_survivors: bool = False
 
     def strategy_mode(self, kinds) -> str:
         """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):
@@ -329,9 +325,7 @@ class SecureConfig:
                  "encoding": self.hidden_encoding, "depth": self.hidden_depth}
         # The anchor frame leaves what is not given to PrivateHeads' own defaults (the public k and d).
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {}
-        survivors = {"survivors": True} if self.hidden_survivors else {}
-        return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None},
-                **survivors}
+        return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None}}
 
     def __post_init__(self):
         if self.hidden_frame not in (None, "anchor", "box"):

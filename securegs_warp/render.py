@@ -36,8 +36,7 @@ def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
 def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, options: RasterOptions | None = None,
                 *, camera_index: int | None = None, offset_source=None, feature_grad: float = 1.0,
                 scaling_grad: float = 1.0, anchor_mask: torch.Tensor | None = None, anchor_index=None, rows=None,
-                compact: bool = True, keep: torch.Tensor | None = None,
-                opacity_power: torch.Tensor | None = None) -> dict:
+                compact: bool = True, keep: torch.Tensor | None = None) -> dict:
     """Decode ``anchors`` (an ``AnchorModel``) visible from ``cam`` with ``heads`` and rasterize them.
 
     background: [3] colour behind the Gaussians (None: black). options: the rasterizer's options
@@ -50,8 +49,7 @@ def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, op
     anchor_index: [Nv] long, the indices of ``anchor_mask``'s True entries, when the caller keeps
     them. rows: a ``RowDecoder`` in place of ``heads`` and ``offset_source``. compact: False keeps
     the rows that fail the opacity test, at opacity 0. keep: [N] bool, the anchors whose Gaussians
-    may pass that test. opacity_power: [] p, the kept Gaussians rendered at opacity 1 - (1 - a)^p.
-    (The last five: see ``generate_neural_gaussians``.)
+    may pass that test. (The last four: see ``generate_neural_gaussians``.)
 
     Returns dict: ``image`` [H, W, 3], ``alpha`` [H, W, 1], ``info`` (rasterize info),
     ``gaussians`` (generate_neural_gaussians output).
@@ -64,7 +62,7 @@ def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, op
     g = generate_neural_gaussians(anchors, heads, camera_center_from_viewmat(viewmat), visible,
                                   camera_index=appearance, feature_grad=feature_grad,
                                   scaling_grad=scaling_grad, rows=rows, anchor_index=anchor_index, compact=compact,
-                                  keep=keep, opacity_power=opacity_power, **extra)
+                                  keep=keep, **extra)
     image, alpha, info = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], viewmat, K,
                                    cam.width, cam.height, background=background, options=options)
     return {"image": image, "alpha": alpha, "info": info, "gaussians": g}

@@ -72,7 +72,6 @@ def generate_neural_gaussians(
     anchor_index: torch.Tensor | None = None,
     compact: bool = True,
     keep: torch.Tensor | None = None,
-    opacity_power: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Decode the visible anchors into the Gaussians of one view, exactly as Scaffold-GS does.
 
@@ -110,11 +109,6 @@ def generate_neural_gaussians(
             others' rows are decoded and then fail it, so that dropping anchors (robust training's
             pruning) leaves the row count as it is; the render and gradients are those of leaving
             them out of ``visible_mask``.
-        opacity_power: [] tensor p >= 1, or None (1): the rendered opacity of each kept Gaussian
-            becomes 1 - (1 - a)^p, what p Gaussians of opacity a in a row let through; a decoder
-            whose anchors lost a share of their number renders its survivors with p the lost
-            share's reciprocal (``PrivateHeads.opacity_power``). ``neural_opacity`` stays the
-            heads' output.
 
     Returns:
         dict with M Gaussians of the Nv * k decoded (Gaussian j of the i-th visible anchor is entry
@@ -160,19 +154,14 @@ def generate_neural_gaussians(
     mask = neural_opacity > 0.0
     if keep is not None:
         mask = mask & keep[anchor_index].repeat_interleave(k)
-    opacities = neural_opacity
-    if opacity_power is not None:
-        # Rows that fail the opacity test (a < 0) are dropped or zeroed below; clamping keeps their
-        # power finite and their gradient zero.
-        opacities = 1.0 - (1.0 - neural_opacity.clamp_min(0.0)) ** opacity_power
-    gaussians = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors}
+    gaussians = {"means": means, "quats": quats, "scales": scales, "opacities": neural_opacity, "colors": colors}
     if compact:
         # The kept rows found once (one host synchronisation; each boolean-mask index costs one).
         kept_rows = mask.nonzero()[:, 0]
         gaussians = {name: t[kept_rows] for name, t in gaussians.items()}
         gaussian_anchor = anchor_index[kept_rows // k]  # Gaussian i*k + j belongs to visible anchor i
     else:
-        gaussians["opacities"] = torch.where(mask, opacities, torch.zeros_like(opacities))
+        gaussians["opacities"] = torch.where(mask, neural_opacity, torch.zeros_like(neural_opacity))
         gaussian_anchor = anchor_index.repeat_interleave(k)
     return {**gaussians, "anchor_index": gaussian_anchor, "neural_opacity": neural_opacity, "mask": mask,
             "visible_mask": visible_mask, "compacted": compact}

@@ -18,9 +18,6 @@ FRAMES = ("anchor", "box")
 # Inside the box every anchor is at distance 0 from it; this share of the distance to the box's
 # centre orders them without moving anyone outside by more than a thousandth of its distance.
 INSIDE_TIE_BREAK = 1e-3
-# The least share of the serving anchors whose loss the survivors' opacity makes up for: below it
-# the survivors are too few to stand for the rest, and the power would turn every splat opaque.
-LEAST_SURVIVORS = 0.25
 
 
 class PrivateHeads(nn.Module):
@@ -61,19 +58,13 @@ class PrivateHeads(nn.Module):
         (``fix_serving``); decoding reads the radius, not the count, so a release that lost anchors
         decodes with the survivors and no anchor the key never trained is drawn in to make up the
         number (it would paint its own Gaussians into the box).
-    survivors: in the box frame with ``serving``, render the hidden Gaussians of a decoding that
-        lost anchors (a pruned release, robust training's dropout) more opaque, as what was there:
-        with s the share of the ``serving_count`` anchors that still decode, opacity a becomes
-        1 - (1 - a)^(1/s) (``opacity_power``), so a pixel that 1/s times as many Gaussians covered
-        lets the same light through. The key stores ``serving_count`` (the anchors within the
-        radius when it was fitted); an undamaged release decodes unchanged.
     """
 
     def __init__(self, public: ScaffoldHeads, *, message: str | None = None, bit_seed: str | None = None,
                  bit_cell: float | None = None,
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0,
-                 encoding: int = 0, depth: int = 1, survivors: bool = False):
+                 encoding: int = 0, depth: int = 1):
         super().__init__()
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -83,14 +74,12 @@ class PrivateHeads(nn.Module):
             raise ValueError(f"encoding must be >= 0 and depth >= 1, got {encoding} and {depth}")
         if encoding and frame != "box":
             raise ValueError("encoding applies to the box frame's positions: it needs frame='box'")
-        if survivors and not (frame == "box" and serving > 0):
-            raise ValueError("survivors counts the serving anchors: it needs frame='box' and serving > 0")
         d = public.feat_dim
         k = public.n_offsets if n_hidden is None else int(n_hidden)
         w = d if width is None else int(width)
         self.feat_dim, self.n_offsets, self.scale_offsets = d, k, scale_offsets
         self.frame, self.width, self.serving = frame, w, int(serving)
-        self.encoding, self.depth, self.survivors = int(encoding), int(depth), bool(survivors)
+        self.encoding, self.depth = int(encoding), int(depth)
         self.decoder = ScaffoldHeads(d, k, use_feat_bank=public.use_feat_bank,
                                      add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
                                      add_color_dist=public.add_color_dist, width=w) if hidden else None
@@ -99,8 +88,6 @@ class PrivateHeads(nn.Module):
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
-        if self.survivors:  # the anchors within the radius when fix_serving set it
-            self.register_buffer("serving_count", torch.tensor(0.0))
         self.bits = None
         self.set_message(message, bit_seed, bit_cell)
         self._serving = Kept()  # the last serving_mask, while positions, radius and box are unchanged
@@ -163,12 +150,10 @@ class PrivateHeads(nn.Module):
         distance = self.box_distance(xyz)
         if len(distance) <= self.serving:
             self.serving_radius.fill_(float("inf"))
-        else:
-            last = distance.kthvalue(self.serving).values
-            beyond = torch.where(distance > last, distance, torch.full_like(distance, float("inf"))).min()
-            self.serving_radius.copy_(0.5 * (last + beyond))
-        if self.survivors:
-            self.serving_count.copy_((distance <= self.serving_radius).sum())
+            return
+        last = distance.kthvalue(self.serving).values
+        beyond = torch.where(distance > last, distance, torch.full_like(distance, float("inf"))).min()
+        self.serving_radius.copy_(0.5 * (last + beyond))
 
     @torch.no_grad()
     def serving_mask(self, xyz: torch.Tensor) -> torch.Tensor | None:
@@ -188,17 +173,6 @@ class PrivateHeads(nn.Module):
         with the mask: their host read (a count) is made once per refit, not once per render."""
         mask = self.serving_mask(xyz)
         return None if mask is None else self._serving_index.get((mask,), lambda: mask.nonzero()[:, 0])
-
-    def opacity_power(self, serving: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor | None:
-        """[] the power p of the hidden opacities (``survivors``; None without it): 1/s, s the share
-        of the ``serving_count`` anchors among ``serving`` [N] bool (``serving_mask``) and ``keep``
-        [N] bool (robust training's dropout; None: all), clamped to [LEAST_SURVIVORS, 1], so a
-        release that gained anchors is not rendered fainter. Stays on the device (no host read)."""
-        if not self.survivors:
-            return None
-        kept = serving if keep is None else serving & keep
-        share = kept.sum() / self.serving_count.clamp_min(1.0)
-        return 1.0 / share.clamp(LEAST_SURVIVORS, 1.0)
 
     def bit_logits(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-anchor bit logits [N] and the bit each anchor votes on [N] (int64), from anchor
@@ -224,5 +198,4 @@ class PrivateHeads(nn.Module):
                                            "bit_cell": self.bits.cell}
         return {**bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
                 "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
-                "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth,
-                "survivors": self.survivors}
+                "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth}

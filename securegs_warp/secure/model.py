@@ -72,11 +72,9 @@ class SecureModel(ScaffoldModel):
             rows = self._captured[secret]
         anchors = self.anchors if anchors is None else anchors
         mask, index, keep = self._decoding_rows(private, anchors, camera, visible)
-        power = private.opacity_power(mask, keep) if private.serves_by_radius else None
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
-                           anchor_mask=mask, anchor_index=index, rows=rows, compact=compact, keep=keep,
-                           opacity_power=power)
+                           anchor_mask=mask, anchor_index=index, rows=rows, compact=compact, keep=keep)
 
     def fixed_rows(self, secret: int = 0, anchors=None) -> bool:
         """Whether secret ``secret``'s hidden render of ``anchors`` (None: this model's own;
@@ -113,10 +111,8 @@ class SecureModel(ScaffoldModel):
         if private.decoder is None:
             raise ValueError("this payload hides no image: there are no hidden Gaussians")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
-        serving = private.serving_mask(self.anchors.xyz)
-        power = None if serving is None else private.opacity_power(serving)
-        return decode_all(self.anchors, private.decoder, camera, offset_source=source, anchor_mask=serving,
-                          opacity_power=power)
+        return decode_all(self.anchors, private.decoder, camera, offset_source=source,
+                          anchor_mask=private.serving_mask(self.anchors.xyz))
 
     def _explicit_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
