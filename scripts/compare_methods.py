@@ -47,6 +47,9 @@ def main():
     ap.add_argument("--seed", type=int, default=0, help="training seed of every method (the scene stays the same)")
     ap.add_argument("--steganerf-tune", choices=("color", "dc", "all"), default="color",
                     help="what StegaNeRF's fine-tuning moves (StegaNeRFConfig.tune; color: the authors')")
+    ap.add_argument("--steganerf-antialias", action="store_true",
+                    help="StegaNeRF's decoder shrinks the render by averaging, not by bilinear sampling "
+                         "(StegaNeRFConfig.decoder_antialias)")
     ap.add_argument("--out", default=os.environ.get("OUT", "runs/compare_methods"))
     args = ap.parse_args()
     p = dict(PRESETS[args.preset])
@@ -63,7 +66,8 @@ def main():
           f"{len(scene.points)} points, {time.perf_counter() - t0:.0f} s", flush=True)
     setup = make_setup(scene, args.payload, p["iterations"], p["finetune"], RasterOptions.for_device(p["device"]),
                        torch.device(p["device"]), [a for a in args.attacks.split(",") if a],
-                       log=lambda line: print(line, flush=True), seed=args.seed, steganerf_tune=args.steganerf_tune)
+                       log=lambda line: print(line, flush=True), seed=args.seed,
+                       steganerf={"tune": args.steganerf_tune, "decoder_antialias": args.steganerf_antialias})
     try:
         # "-dirty" when the tree is not the commit's (a copy with a stale .git, uncommitted edits)
         commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
@@ -73,7 +77,8 @@ def main():
     device = torch.cuda.get_device_name() if p["device"] == "cuda" else "CPU"
     meta = {**p, "device": device, "payload": args.payload, "hide": args.hide, "preset": args.preset,
             "date": time.strftime("%Y-%m-%d", time.gmtime()), "commit": commit, "attacks": setup.attacks,
-            "seed": args.seed, "steganerf_tune": args.steganerf_tune}
+            "seed": args.seed, "steganerf_tune": args.steganerf_tune,
+            "steganerf_antialias": args.steganerf_antialias}
     out = Path(args.out)
     rows = run_all(setup, [m for m in args.methods.split(",") if m],
                    on_row=lambda rows: write_report(out, rows, meta))

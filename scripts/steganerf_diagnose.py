@@ -25,6 +25,8 @@ def main() -> None:
     defaults = StegaNeRFConfig()
     parser.add_argument("--decoder-levels", type=int, default=defaults.decoder_levels)
     parser.add_argument("--decoder-size", type=int, default=defaults.decoder_size)
+    parser.add_argument("--decoder-antialias", action="store_true",
+                        help="shrink the render to the decoder's size by averaging (StegaNeRFConfig.decoder_antialias)")
     parser.add_argument("--classifier-lr", type=float, default=defaults.classifier_lr)
     parser.add_argument("--tune", choices=("color", "dc", "all"), default=defaults.tune)
     parser.add_argument("--no-gradient-masking", dest="gradient_masking", action="store_false")
@@ -42,7 +44,8 @@ def main() -> None:
     flat = ((hidden - hidden.mean(dim=(0, 1))) ** 2).mean().item()
     print(f"flat image of the hidden image's mean colour: {-10 * math.log10(flat):.2f} dB")
     config = StegaNeRFConfig(iterations=args.steps, decoder_levels=args.decoder_levels,
-                             decoder_size=args.decoder_size, classifier_lr=args.classifier_lr, tune=args.tune,
+                             decoder_size=args.decoder_size, decoder_antialias=args.decoder_antialias,
+                             classifier_lr=args.classifier_lr, tune=args.tune,
                              gradient_masking=args.gradient_masking)
     stega = StegaNeRF(cover.model, scene, hidden, config, raster=raster, background=cover.background, seed=args.seed)
 
@@ -53,7 +56,8 @@ def main() -> None:
 
     stega.train(report)
     result = stega.evaluate(timing_repeats=1)
-    print("held-out: " + "  ".join(f"{k} {v:.2f}" for k, v in result.items() if not k.startswith("fps")))
+    print("held-out: " + "  ".join(f"{k} {v:.2f}" for k, v in result.items()
+                                    if not k.startswith("fps") and v is not None))
     # The same reading on the training views, and the classifier's belief on each view's fine-tuned
     # render: a gap between training and held-out views is what fitting each view separately gives.
     with torch.no_grad():

@@ -145,7 +145,11 @@ class StegaNeRFConfig:
     the square size it reads the render at (the authors' VGG16 U-Net: 5 and wm_resize 128). The
     size must be fixed and the bottleneck must see the whole picture: a 3-level U-Net at the
     view's own size (decoder_levels 3, decoder_size 0) learns only the hidden image's mean colour
-    (docs/results.md, "StegaNeRF: what it needs to learn").
+    (docs/results.md, "StegaNeRF: what it needs to learn"). decoder_antialias: shrink the render to
+    decoder_size² by averaging every pixel under each output pixel (torch's antialiased bilinear)
+    rather than bilinear sampling, which at 1080p reads about one pixel in 60, so that only a
+    signal placed on the sampled pixels of each training view reaches the decoder (the authors'
+    U-Net samples too, nearest-neighbour: off by default).
     """
 
     iterations: int = 600
@@ -162,6 +166,7 @@ class StegaNeRFConfig:
     decoder_width: int = 16
     decoder_levels: int = 5
     decoder_size: int = 128
+    decoder_antialias: bool = False
     classifier_lr: float = 0.0001
 
     def __post_init__(self):

@@ -1,5 +1,6 @@
 """The paper's baselines: 3DGS + StegaNeRF, attacks on explicit Gaussians, and the method comparison."""
 import json
+import math
 
 import pytest
 import torch
@@ -45,6 +46,8 @@ def test_steganerf_hides_in_fine_tuned_renders_only(scene, cover):
     # gives black there); the cover keeps 15.7 dB.
     assert result["psnr_hidden"] > result["psnr_hidden_from_original"] + 5.0
     assert result["psnr_public"] > 15.0
+    # A decoder at the view's size is scored once: its working size is the view's.
+    assert result["psnr_hidden_working_size"] == result["psnr_hidden"] and result["psnr_hidden_ceiling"] is None
     # Colour-only tuning (the authors' fixed geometry): the geometry is the cover's, the colours moved;
     # the cover model itself is untouched.
     assert torch.equal(stega.model.means, before["means"]) and torch.equal(stega.model.log_scales, before["log_scales"])
@@ -79,6 +82,34 @@ def test_decoder_sees_the_whole_view(height, width):
     assert float(image.grad[0, :, :corner[0], :corner[1]].abs().sum()) > 0.0
 
 
+def test_antialiased_decoder_input_reads_every_pixel():
+    # Shrinking 1920x1080 to 128² by bilinear sampling reads about one pixel in 60: a change to a
+    # pixel between the samples leaves the decoder's input as it was. Averaging reads them all.
+    image = torch.rand(1, 3, 1080, 1920, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    seen = {}
+    for antialias in (False, True):
+        image.grad = None
+        StegaDecoder(size=128, antialias=antialias).working_copy(image).sum().backward()
+        seen[antialias] = float((image.grad[0, 0] != 0).float().mean())
+    assert seen[True] == 1.0 and seen[False] < 0.1
+
+
+def test_a_decoder_of_fixed_size_is_scored_at_it_and_capped_at_the_views_size(scene, cover):
+    # A 16² decoder resized to 40x30 cannot draw finer than 16²: the ceiling (the hidden image
+    # averaged down and resized back) lies between a flat image and identity, and the working-size
+    # score compares the decoder's own 16² output with the hidden image at 16².
+    stega = _stega(scene, cover, iterations=2, decoder_size=16)
+    stega.train()
+    result = stega.evaluate(timing_repeats=1)
+    hidden = stega.hidden
+    flat = -10 * math.log10(float(((hidden - hidden.mean(dim=(0, 1))) ** 2).mean()))
+    assert flat < result["psnr_hidden_ceiling"] < 40.0
+    image = stega.render(scene.test[0])["image"]
+    assert stega.reveal(image, working_size=True).shape == (16, 16, 3)
+    assert stega.hidden_at_working_size().shape == (16, 16, 3)
+    assert result["psnr_hidden_working_size"] != result["psnr_hidden"]
+
+
 def test_gradient_masking_weights(cover):
     weights = sh_gradient_weights(cover.model, power=1.0)
     coeffs = torch.cat([cover.model.features_dc[:, None], cover.model.features_rest], dim=1).detach()
@@ -103,6 +134,8 @@ def test_key_round_trip_and_bad_key(scene, cover, tmp_path):
         _stega(scene, cover, decoder_width=8).load_key(tmp_path / "key.safetensors")
     with pytest.raises(ValueError, match="decoder_size"):  # same weights' shapes, another input size
         _stega(scene, cover, decoder_size=64).load_key(tmp_path / "key.safetensors")
+    with pytest.raises(ValueError, match="decoder_antialias"):  # the same weights, read another way
+        _stega(scene, cover, decoder_antialias=True).load_key(tmp_path / "key.safetensors")
     assert (tmp_path / "key.safetensors").stat().st_mode & 0o077 == 0  # readable by its owner only
     with pytest.raises(ValueError, match="hidden image must be"):
         StegaNeRF(cover.model, scene, torch.zeros(5, 5, 3), StegaNeRFConfig())
@@ -154,4 +187,4 @@ def test_comparison_runs_and_reports(scene, tmp_path):
     with pytest.raises(ValueError, match="unknown attack"):
         make_setup(scene, "image", 8, 4, CPU_RASTER, torch.device("cpu"), attacks=("melt:1",))
     with pytest.raises(ValueError, match="tune must be"):
-        make_setup(scene, "image", 8, 4, CPU_RASTER, torch.device("cpu"), steganerf_tune="geometry")
+        make_setup(scene, "image", 8, 4, CPU_RASTER, torch.device("cpu"), steganerf={"tune": "geometry"})

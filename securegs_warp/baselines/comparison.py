@@ -105,9 +105,10 @@ class Setup:
 
 
 def make_setup(scene, payload: str, iterations: int, finetune: int, raster, device, attacks=DEFAULT_ATTACKS,
-               log=print, seed: int = 0, steganerf_tune: str = "color") -> Setup:
-    """The shared setup; ``seed`` seeds every method's training, ``steganerf_tune`` is
-    ``StegaNeRFConfig.tune``. Bad options raise ValueError before any training."""
+               log=print, seed: int = 0, steganerf: dict | None = None) -> Setup:
+    """The shared setup; ``seed`` seeds every method's training, ``steganerf`` holds
+    ``StegaNeRFConfig`` fields other than its iterations (``finetune``). Bad options raise ValueError
+    before any training."""
     if payload not in PAYLOADS:
         raise ValueError(f"payload must be one of {', '.join(PAYLOADS)}, got {payload!r}")
     parse_attacks(attacks)  # a bad spec fails before any training
@@ -115,7 +116,7 @@ def make_setup(scene, payload: str, iterations: int, finetune: int, raster, devi
         else 0.0
     return Setup(scene, payload, TrainConfig(iterations=iterations, seed=seed, raster=raster),
                  device, tuple(attacks), torch.as_tensor(hidden_image_for(scene), device=device), radius,
-                 StegaNeRFConfig(iterations=finetune, tune=steganerf_tune), log)
+                 StegaNeRFConfig(iterations=finetune, **(steganerf or {})), log)
 
 
 def _train(trainer, label: str, setup: Setup) -> None:
@@ -189,8 +190,15 @@ def run_steganerf(setup: Setup, cover: GaussianTrainer) -> tuple[dict, np.ndarra
              "hidden_psnr_after": after,
              "note": f"{setup.train.iterations} 3DGS steps + {setup.steganerf.iterations} fine-tuning steps; "
                      f"hidden image decoded from every held-out view (from the original scene's renders: "
-                     f"{ev['psnr_hidden_from_original']:.1f} dB)"},
+                     f"{ev['psnr_hidden_from_original']:.1f} dB)" + _working_size_note(ev, setup.steganerf)},
             original.means.detach().cpu().numpy())
+
+
+def _working_size_note(ev: dict, config: StegaNeRFConfig) -> str:
+    if ev["psnr_hidden_ceiling"] is None:
+        return ""
+    return (f"; at the decoder's {config.decoder_size}², as the authors score: {ev['psnr_hidden_working_size']:.2f} dB "
+            f"(a perfect decoder of that size scores {ev['psnr_hidden_ceiling']:.2f} dB at the view's size)")
 
 
 @torch.no_grad()
@@ -281,7 +289,8 @@ def report_tables(rows: list[dict], meta: dict) -> str:
     """Markdown: the main table, the attack table (hidden PSNR after each attack) and the papers'
     numbers."""
     lines = [f"{meta['device']}, {meta['width']}×{meta['height']}, {meta['iterations']} iterations "
-             f"(3DGS+StegaNeRF: + {meta['finetune']} fine-tuning steps, tune {meta.get('steganerf_tune', 'color')}), "
+             f"(3DGS+StegaNeRF: + {meta['finetune']} fine-tuning steps, tune {meta.get('steganerf_tune', 'color')}"
+             f"{', antialiased decoder input' if meta.get('steganerf_antialias') else ''}), "
              f"payload {meta['payload']}, seed {meta.get('seed', 0)}, commit {meta.get('commit', '?')}", "",
              "| " + " | ".join(COLUMNS) + " |", "|---" * len(COLUMNS) + "|"]
     lines += ["| " + " | ".join(_fmt(r.get(c)) for c in COLUMNS) + " |" for r in rows]

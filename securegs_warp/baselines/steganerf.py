@@ -30,6 +30,7 @@ from ..config import StegaNeRFConfig
 from ..gaussians import GaussianModel
 from ..keys import write_private
 from ..rasterizer import RasterOptions
+from ..train.losses import psnr
 
 COLOR_PARAMS = ("features_dc", "features_rest")
 
@@ -49,21 +50,31 @@ class StegaDecoder(nn.Module):
     whole picture is what lets the decoder draw the hidden image at the right place in every view
     (where the hidden image is, is known to the network only through its receptive field reaching
     the borders); at the view's own size the receptive field covers a patch, and the decoder can
-    learn no more than the hidden image's mean colour. ``size`` 0 works at the view's size."""
+    learn no more than the hidden image's mean colour. ``size`` 0 works at the view's size.
+    ``antialias``: a larger render is shrunk by averaging the pixels under each output pixel
+    instead of sampling four of them."""
 
-    def __init__(self, width: int = 16, levels: int = 3, size: int = 0):
+    def __init__(self, width: int = 16, levels: int = 3, size: int = 0, antialias: bool = False):
         super().__init__()
-        self.size = size
+        self.size, self.antialias = size, antialias
         widths = [width * 2 ** level for level in range(levels)]
         self.encoders = nn.ModuleList(_conv_block(c_in, c_out) for c_in, c_out in zip([4] + widths[:-1], widths))
         self.decoders = nn.ModuleList(_conv_block(widths[level + 1] + widths[level], widths[level])
                                       for level in reversed(range(levels - 1)))
         self.out = nn.Conv2d(width, 3, 1)
 
-    def forward(self, image: torch.Tensor, belief: torch.Tensor) -> torch.Tensor:
+    def working_copy(self, image: torch.Tensor) -> torch.Tensor:
+        """The render [B, 3, H, W] at the size the U-Net works at ([B, 3, size, size]; itself with size 0)."""
+        if not self.size:
+            return image
+        return F.interpolate(image, size=(self.size, self.size), mode="bilinear", align_corners=False,
+                             antialias=self.antialias)
+
+    def forward(self, image: torch.Tensor, belief: torch.Tensor, working_size: bool = False) -> torch.Tensor:
+        """working_size: return the U-Net's output as it made it, [B, 3, size, size] (the authors'
+        scoring size), instead of resized to the render's H, W."""
         b, _, h, w = image.shape
-        if self.size:
-            image = F.interpolate(image, size=(self.size, self.size), mode="bilinear", align_corners=False)
+        image = self.working_copy(image)
         x = torch.cat([image, belief.view(b, 1, 1, 1).expand(b, 1, *image.shape[-2:])], dim=1)
         skips = []
         for level, encoder in enumerate(self.encoders):
@@ -73,7 +84,9 @@ class StegaDecoder(nn.Module):
             x = decoder(torch.cat([F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False),
                                    skip], 1))
         x = torch.sigmoid(self.out(x))
-        return x if x.shape[-2:] == (h, w) else F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
+        if working_size or x.shape[-2:] == (h, w):
+            return x
+        return F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False)
 
 
 class StegaClassifier(nn.Module):
@@ -127,7 +140,8 @@ class StegaNeRF:
         for name, p in self.model.named_parameters():
             p.requires_grad_(tuned is None or name in tuned)
         torch.manual_seed(seed)  # decoder and classifier initialisation
-        self.decoder = StegaDecoder(config.decoder_width, config.decoder_levels, config.decoder_size).to(self.device)
+        self.decoder = StegaDecoder(config.decoder_width, config.decoder_levels, config.decoder_size,
+                                    config.decoder_antialias).to(self.device)
         self.classifier = StegaClassifier(config.decoder_width).to(self.device)
         lr = {name: config.color_lr for name in COLOR_PARAMS}
         lr.update({"means": 0.0, "log_scales": 0.005, "quats": 0.001, "opacity_logits": 0.05})  # 3DGS's, tune=all
@@ -149,10 +163,16 @@ class StegaNeRF:
         return self.model.render(cam, self.raster, background=self.background)
 
     @torch.no_grad()
-    def reveal(self, image: torch.Tensor) -> torch.Tensor:
-        """The decoder's reading [H, W, 3] of a render [H, W, 3], guided by the classifier."""
+    def reveal(self, image: torch.Tensor, working_size: bool = False) -> torch.Tensor:
+        """The decoder's reading [H, W, 3] of a render [H, W, 3], guided by the classifier
+        (working_size: [S, S, 3] at the U-Net's own size, ``decoder_size``)."""
         x = _chw(image)
-        return self.decoder(x, self.classifier(x))[0].permute(1, 2, 0)
+        return self.decoder(x, self.classifier(x), working_size)[0].permute(1, 2, 0)
+
+    def hidden_at_working_size(self) -> torch.Tensor:
+        """The hidden image at the decoder's working size (``shrink``; itself with size 0): what
+        ``reveal(..., working_size=True)`` is scored against."""
+        return shrink(self.hidden, self.decoder.size) if self.decoder.size else self.hidden
 
     def render_hidden(self, cam) -> dict:
         """The hidden image as the key holder recovers it from the public render of ``cam``."""
@@ -202,9 +222,12 @@ class StegaNeRF:
     @torch.no_grad()
     def evaluate(self, timing_repeats: int = 3) -> dict:
         """On the held-out views: the cover (public render vs the photographs), the hidden image
-        (decoded from each view's render vs M), what the decoder reads from the original scene's
-        renders (``psnr_hidden_from_original``: a decoder that paints M onto anything would score
-        high there), and the FPS of the public render and of render + decoder."""
+        (decoded from each view's render vs M), the same at the decoder's working size
+        (``*_working_size``: its output before resizing against M averaged down to that size, as the
+        authors score at 128²), the most a decoder of that size can score at the view's size
+        (``psnr_hidden_ceiling``: M averaged down and resized back), what the decoder reads from
+        the original scene's renders (``psnr_hidden_from_original``: a decoder that paints M onto
+        anything would score high there), and the FPS of the public render and of render + decoder."""
         cams = self.scene.test or self.scene.train
         cover = evaluation.evaluate_views(self.render, cams, self.device, timing_repeats=timing_repeats)
         hidden = evaluation.image_metrics([(self.render_hidden(c)["image"], self.hidden) for c in cams], self.device,
@@ -212,8 +235,14 @@ class StegaNeRF:
         original = evaluation.image_metrics(
             [(self.reveal(self.original.render(c, self.raster, background=self.background)["image"]), self.hidden)
              for c in cams], self.device, with_lpips=False)
+        working = evaluation.image_metrics(
+            [(self.reveal(self.render(c)["image"], working_size=True), self.hidden_at_working_size())
+             for c in cams], self.device, with_lpips=False)
+        ceiling = working_size_ceiling(self.hidden, self.decoder.size) if self.decoder.size else None
         return {"psnr_public": cover["psnr"], "ssim_public": cover["ssim"], "fps_public": cover["fps"],
                 "psnr_hidden": hidden["psnr"], "ssim_hidden": hidden["ssim"],
+                "psnr_hidden_working_size": working["psnr"], "ssim_hidden_working_size": working["ssim"],
+                "psnr_hidden_ceiling": ceiling,
                 "psnr_hidden_from_original": original["psnr"],
                 "fps_hidden": evaluation.render_fps(self.render_hidden, cams, self.device, timing_repeats)}
 
@@ -227,7 +256,7 @@ class StegaNeRF:
         """The decoder's shape as the key records it: what a reader must build to load the weights."""
         c = self.config
         return {"decoder_width": str(c.decoder_width), "decoder_levels": str(c.decoder_levels),
-                "decoder_size": str(c.decoder_size)}
+                "decoder_size": str(c.decoder_size), "decoder_antialias": str(c.decoder_antialias)}
 
     def save_key(self, path: str | os.PathLike) -> None:
         """The decoder and classifier as a safetensors file (tensors only: loading runs no code),
@@ -250,6 +279,7 @@ class StegaNeRF:
         except (OSError, SafetensorError) as e:
             raise ValueError(f"{path}: not a StegaNeRF key ({e})") from None
         shape = self.key_shape()
+        metadata = {"decoder_antialias": "False", **metadata}  # keys written before the option sampled
         differ = [f"{k} {metadata.get(k)} (this decoder: {v})" for k, v in shape.items() if metadata.get(k) != v]
         if metadata.get("method") != "3dgs+steganerf" or differ:
             raise ValueError(f"{path}: not a key for this decoder ({'; '.join(differ) or 'another method'})")
@@ -259,6 +289,23 @@ class StegaNeRF:
                 module.load_state_dict(part)
             except RuntimeError as e:
                 raise ValueError(f"{path}: not a key for this decoder ({str(e).splitlines()[0]})") from None
+
+
+@torch.no_grad()
+def shrink(image: torch.Tensor, size: int) -> torch.Tensor:
+    """An image [H, W, 3] resized to [size, size, 3], each output pixel the average of the input
+    pixels under it where it shrinks (``cv2.INTER_AREA``, as the authors resize their watermark)."""
+    return F.interpolate(_chw(image), size=(size, size), mode="bilinear", align_corners=False,
+                         antialias=True)[0].permute(1, 2, 0)
+
+
+@torch.no_grad()
+def working_size_ceiling(hidden: torch.Tensor, size: int) -> float:
+    """The PSNR (dB) at the view's size of a decoder that works at size² and draws the hidden
+    image [H, W, 3] there perfectly: its output is resized to H, W as ``StegaDecoder`` does, so
+    no decoder of that size scores more."""
+    back = F.interpolate(_chw(shrink(hidden, size)), size=hidden.shape[:2], mode="bilinear", align_corners=False)
+    return psnr(back[0].permute(1, 2, 0), hidden)
 
 
 def hidden_image_for(scene, image: str = "builtin") -> np.ndarray:
