@@ -147,7 +147,7 @@ class StegaNeRFConfig:
     view's own size (decoder_levels 3, decoder_size 0) learns only the hidden image's mean colour
     (docs/results.md, "StegaNeRF: what it needs to learn"). decoder_antialias: shrink the render to
     decoder_size² by averaging every pixel under each output pixel (torch's antialiased bilinear)
-    rather than bilinear sampling, which at 1080p reads about one pixel in 60, so that only a
+    rather than bilinear sampling, which at 1080p reads one pixel in 63, so that only a
     signal placed on the sampled pixels of each training view reaches the decoder (the authors'
     U-Net samples too, nearest-neighbour: off by default).
     """

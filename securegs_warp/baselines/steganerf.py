@@ -18,6 +18,7 @@ classifier that guides it). StegaNeRF's fine-tuning, per step on one training vi
 from __future__ import annotations
 
 import copy
+import math
 import os
 
 import numpy as np
@@ -30,7 +31,6 @@ from ..config import StegaNeRFConfig
 from ..gaussians import GaussianModel
 from ..keys import write_private
 from ..rasterizer import RasterOptions
-from ..train.losses import psnr
 
 COLOR_PARAMS = ("features_dc", "features_rest")
 
@@ -225,7 +225,7 @@ class StegaNeRF:
         (decoded from each view's render vs M), the same at the decoder's working size
         (``*_working_size``: its output before resizing against M averaged down to that size, as the
         authors score at 128²), the most a decoder of that size can score at the view's size
-        (``psnr_hidden_ceiling``: M averaged down and resized back), what the decoder reads from
+        (``psnr_hidden_ceiling``: ``working_size_ceiling``), what the decoder reads from
         the original scene's renders (``psnr_hidden_from_original``: a decoder that paints M onto
         anything would score high there), and the FPS of the public render and of render + decoder."""
         cams = self.scene.test or self.scene.train
@@ -293,19 +293,32 @@ class StegaNeRF:
 
 @torch.no_grad()
 def shrink(image: torch.Tensor, size: int) -> torch.Tensor:
-    """An image [H, W, 3] resized to [size, size, 3], each output pixel the average of the input
-    pixels under it where it shrinks (``cv2.INTER_AREA``, as the authors resize their watermark)."""
-    return F.interpolate(_chw(image), size=(size, size), mode="bilinear", align_corners=False,
-                         antialias=True)[0].permute(1, 2, 0)
+    """An image [H, W, 3] at [size, size, 3]: each output pixel the mean of the input pixels under it
+    where it shrinks (``cv2.INTER_AREA``, as the authors resize their watermark), bilinear where it
+    grows."""
+    mode = "area" if min(image.shape[:2]) >= size else "bilinear"
+    extra = {} if mode == "area" else {"align_corners": False}
+    return F.interpolate(_chw(image), size=(size, size), mode=mode, **extra)[0].permute(1, 2, 0)
+
+
+def _bilinear_matrix(length: int, size: int) -> torch.Tensor:
+    """[length, size]: the 1-D map of ``StegaDecoder``'s bilinear resize from size to length samples."""
+    eye = torch.eye(size, dtype=torch.float64)[None, None]
+    return F.interpolate(eye, size=(length, size), mode="bilinear", align_corners=False)[0, 0]
 
 
 @torch.no_grad()
 def working_size_ceiling(hidden: torch.Tensor, size: int) -> float:
-    """The PSNR (dB) at the view's size of a decoder that works at size² and draws the hidden
-    image [H, W, 3] there perfectly: its output is resized to H, W as ``StegaDecoder`` does, so
-    no decoder of that size scores more."""
-    back = F.interpolate(_chw(shrink(hidden, size)), size=hidden.shape[:2], mode="bilinear", align_corners=False)
-    return psnr(back[0].permute(1, 2, 0), hidden)
+    """The most PSNR (dB) at the view's size that any drawing at size² scores against the hidden
+    image [H, W, 3], once ``StegaDecoder`` resizes it to H, W. The resize is linear and separable
+    (A X Bᵀ per channel), so the least-squares drawing X = A⁺ M (B⁺)ᵀ has the least error of all,
+    those in [0, 1] included: no decoder of that size scores more."""
+    h, w = hidden.shape[:2]
+    a, b = _bilinear_matrix(h, size), _bilinear_matrix(w, size)
+    target = hidden.detach().double().cpu().permute(2, 0, 1)
+    fit = a @ (torch.linalg.pinv(a) @ target @ torch.linalg.pinv(b).T) @ b.T
+    mse = float(((fit - target) ** 2).mean())
+    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 
 def hidden_image_for(scene, image: str = "builtin") -> np.ndarray:
