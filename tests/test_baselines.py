@@ -83,7 +83,7 @@ def test_decoder_sees_the_whole_view(height, width):
 
 
 def test_antialiased_decoder_input_reads_every_pixel():
-    # Shrinking 1920x1080 to 128² by bilinear sampling reads about one pixel in 60: a change to a
+    # Shrinking 1920x1080 to 128² by bilinear sampling reads one pixel in 63: a change to a
     # pixel between the samples leaves the decoder's input as it was. Averaging reads them all.
     image = torch.rand(1, 3, 1080, 1920, generator=torch.Generator().manual_seed(0), requires_grad=True)
     seen = {}

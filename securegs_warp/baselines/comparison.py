@@ -198,7 +198,7 @@ def _working_size_note(ev: dict, config: StegaNeRFConfig) -> str:
     if ev["psnr_hidden_ceiling"] is None:
         return ""
     return (f"; at the decoder's {config.decoder_size}², as the authors score: {ev['psnr_hidden_working_size']:.2f} dB "
-            f"(a perfect decoder of that size scores {ev['psnr_hidden_ceiling']:.2f} dB at the view's size)")
+            f"(no decoder of that size scores more than {ev['psnr_hidden_ceiling']:.2f} dB at the view's size)")
 
 
 @torch.no_grad()

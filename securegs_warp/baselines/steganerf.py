@@ -235,9 +235,10 @@ class StegaNeRF:
         original = evaluation.image_metrics(
             [(self.reveal(self.original.render(c, self.raster, background=self.background)["image"]), self.hidden)
              for c in cams], self.device, with_lpips=False)
+        small = self.hidden_at_working_size()
         working = evaluation.image_metrics(
-            [(self.reveal(self.render(c)["image"], working_size=True), self.hidden_at_working_size())
-             for c in cams], self.device, with_lpips=False)
+            [(self.reveal(self.render(c)["image"], working_size=True), small) for c in cams], self.device,
+            with_lpips=False)
         ceiling = working_size_ceiling(self.hidden, self.decoder.size) if self.decoder.size else None
         return {"psnr_public": cover["psnr"], "ssim_public": cover["ssim"], "fps_public": cover["fps"],
                 "psnr_hidden": hidden["psnr"], "ssim_hidden": hidden["ssim"],
@@ -317,6 +318,8 @@ def working_size_ceiling(hidden: torch.Tensor, size: int) -> float:
     a, b = _bilinear_matrix(h, size), _bilinear_matrix(w, size)
     target = hidden.detach().double().cpu().permute(2, 0, 1)
     fit = a @ (torch.linalg.pinv(a) @ target @ torch.linalg.pinv(b).T) @ b.T
+    # Not train.losses.psnr: it clamps the fit to [0, 1], which a decoder's sigmoid output never
+    # needs, and so would loosen the bound.
     mse = float(((fit - target) ** 2).mean())
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
