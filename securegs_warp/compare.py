@@ -66,16 +66,17 @@ def train(trainer, label: str) -> dict:
     t0 = time.perf_counter()
     nonfinite_at, trace, window = [], [], []
     incomplete = 0
-    while trainer.step_count < trainer.config.iterations:
+    while trainer.step_count < trainer.total_steps:
         stats = trainer.step()
-        window.append(stats["psnr"])
+        if stats.get("phase") != "finish":  # a finishing step's "psnr" is the hidden render's
+            window.append(stats["psnr"])
         if len(window) == 100:
             trace.append(round(float(np.mean(window)), 2))
             window = []
         if "nonfinite_grads" in stats:
             nonfinite_at.append([trainer.step_count, stats["nonfinite_groups"]])
         incomplete += "incomplete_renders" in stats
-    print(f"{label}: {trainer.config.iterations} steps in {time.perf_counter() - t0:.0f} s, "
+    print(f"{label}: {trainer.step_count} steps in {time.perf_counter() - t0:.0f} s, "
           f"{trainer.model.anchors.num_anchors} anchors, {len(nonfinite_at)} steps with non-finite gradients "
           f"{nonfinite_at or ''}, {incomplete} with an incomplete captured render", flush=True)
     out = {"nonfinite_steps": len(nonfinite_at), "nonfinite_at": nonfinite_at, "incomplete_steps": incomplete,

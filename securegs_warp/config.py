@@ -257,6 +257,12 @@ class SecureConfig:
         this is the knob that trades hidden fidelity for training time (docs/results.md, "The hidden
         stride"). The private heads take one Adam step per hidden step; the RDO mode gathers ∇_hid
         on the steps that are multiples of both this and its own ``hidden_every``.
+    hidden_finish: after the joint run, the private heads alone train on the hidden loss (with robust
+        training's attacks) for this fraction of ``iterations`` more steps, while the release stays as
+        the joint run left it: the cover, the anchor cloud and the bits do not change, only the key.
+        During the joint run the anchor features the private heads read keep moving; the finishing
+        phase fits the heads to the features that are published (docs/results.md, "The finishing
+        phase"). 0: none. Payloads without a hidden render (bits alone) have nothing to finish.
     hidden_capture: on CUDA, a box-frame key's decoding of its serving anchors (``hidden_anchors``
         > 0) is replayed from CUDA graphs during training (``secure.captured``): the same values up
         to float rounding, for a fraction of the host work; in the cover mode without the hidden
@@ -285,6 +291,7 @@ class SecureConfig:
     hidden_depth: int | None = None
     hidden_crop: bool = False
     hidden_stride: int = 1
+    hidden_finish: float = 0.0
     hidden_capture: bool = True
 
     def strategy_mode(self, kinds) -> str:
@@ -338,6 +345,8 @@ class SecureConfig:
         for name in ("hidden_offsets", "hidden_width", "hidden_anchors", "hidden_depth", "hidden_stride"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.hidden_finish >= 0.0:
+            raise ValueError(f"hidden_finish must be >= 0 (a fraction of the iterations), got {self.hidden_finish}")
         if self.hidden_encoding is not None and self.hidden_encoding < 0:
             raise ValueError(f"hidden_encoding must be >= 0, got {self.hidden_encoding}")
         if self.hidden_weight is not None and not self.hidden_weight >= 0.0:
@@ -587,14 +596,22 @@ def _set(config, parts: list[str], value, where: str):
     return dataclasses.replace(config, **{head: _coerce(hint, value, path)})
 
 
-def first_difference(a, b, where: str = "") -> str | None:
-    """The dotted path of the first field where two configs of the same type differ, or None."""
+# Options a resumed run may change: they act only after the steps a checkpoint can hold and do not
+# change the release, so a finished container can be given a longer finishing phase for a better key.
+RESUMABLE_CHANGES = ("secure.hidden_finish",)
+
+
+def first_difference(a, b, where: str = "", ignore: tuple = ()) -> str | None:
+    """The dotted path of the first field where two configs of the same type differ, or None;
+    fields at the dotted paths ``ignore`` are not compared."""
+    if where in ignore:
+        return None
     if type(a) is not type(b):
         return where or "config"
     if not dataclasses.is_dataclass(a):
         return None if a == b else where
     for f in dataclasses.fields(a):
-        diff = first_difference(getattr(a, f.name), getattr(b, f.name), _path(where, f.name))
+        diff = first_difference(getattr(a, f.name), getattr(b, f.name), _path(where, f.name), ignore)
         if diff is not None:
             return diff
     return None

@@ -1,5 +1,6 @@
 """SecureGS: payloads, private heads, region-aware densification, the release/key split, reveal."""
 import collections
+import dataclasses
 import json
 
 import numpy as np
@@ -481,6 +482,66 @@ def test_hidden_stride_trains_the_hidden_branch_every_nth_step_at_n_times_its_we
     assert private_grads == [False, False, True] * 2
     assert ["psnr_hidden" in r for r in results] == [False, False, True] * 2
     assert trainer.bit_accuracy() == 1.0  # the bits are projected after every step, hidden or not
+
+
+def _release_state(trainer) -> dict:
+    """Every tensor of the release (anchors and public heads), copied."""
+    return {name: t.detach().clone() for name, t in
+            [*trainer.model.anchors.state_dict().items(), *trainer.model.heads.state_dict().items()]}
+
+
+def test_the_finishing_phase_trains_the_private_heads_alone_and_resumes(hidden_scene, tmp_path):
+    """hidden_finish F: F·iterations more steps after the joint run, in which only the private heads
+    move (the release, and with it the bits, stays as the joint run left it), at decaying learning
+    rates; a checkpoint written in the phase resumes it to the same key."""
+    config = TrainConfig(iterations=4, raster=CPU_RASTER)
+    with pytest.raises(ValueError, match="hidden_finish must be >= 0"):
+        SecureConfig(hidden_finish=-0.5)
+    secure = SecureConfig(payload="object+bits:16", hidden_finish=1.0, hidden_offsets=2, hidden_width=8,
+                          hidden_anchors=40)
+    trainer = SecureTrainer(hidden_scene, config, secure)
+    assert trainer.total_steps == 8
+    for _ in range(4):
+        assert "phase" not in trainer.step()
+    release = _release_state(trainer)
+    private = {name: t.detach().clone() for name, t in trainer.model.private.state_dict().items()}
+    bits = trainer.bit_accuracy()
+    stats, rates = [], []
+    for _ in range(2):
+        stats.append(trainer.step())
+        rates.append(trainer._finish_optimizer.param_groups[0]["lr"])
+    assert [s["phase"] for s in stats] == ["finish"] * 2
+    assert all(s["psnr"] == s["psnr_hidden"] for s in stats)
+    assert rates[1] < rates[0]
+    after = _release_state(trainer)
+    assert all(torch.equal(release[name], after[name]) for name in release)
+    moved = trainer.model.private.state_dict()
+    assert any(not torch.equal(private[name], moved[name]) for name in private if "offset_mlp" in name)
+    assert trainer.bit_accuracy() == bits
+
+    trainer.save_checkpoint(tmp_path / "run.pt")
+    resumed = SecureTrainer(hidden_scene, config, secure)
+    resumed.load_checkpoint(tmp_path / "run.pt")
+    generator = trainer.generator.get_state()
+    for t in (trainer, resumed):
+        t.generator.set_state(generator)
+        while t.step_count < t.total_steps:
+            t.step()
+    assert all(torch.equal(a, b) for a, b in zip(trainer.model.private.state_dict().values(),
+                                                  resumed.model.private.state_dict().values()))
+    assert all(torch.equal(t, _release_state(resumed)[name]) for name, t in _release_state(trainer).items())
+
+    # A finished run may be resumed with a longer phase: the joint run and the release are the same.
+    longer = SecureTrainer(hidden_scene, config, dataclasses.replace(secure, hidden_finish=2.0))
+    longer.load_checkpoint(tmp_path / "run.pt")
+    assert (longer.step_count, longer.total_steps) == (6, 12)
+    assert longer.step()["phase"] == "finish"
+    with pytest.raises(ValueError, match="hidden_offsets differs"):
+        SecureTrainer(hidden_scene, config, dataclasses.replace(secure, hidden_offsets=3)).load_checkpoint(
+            tmp_path / "run.pt")
+
+    # Bits alone have no hidden render: nothing to finish.
+    assert SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:16", hidden_finish=1.0)).total_steps == 4
 
 
 def test_a_checkpoint_whose_private_heads_have_other_shapes_is_refused_by_name(hidden_scene, tmp_path, monkeypatch):

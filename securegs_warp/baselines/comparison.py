@@ -120,7 +120,7 @@ def make_setup(scene, payload: str, iterations: int, finetune: int, raster, devi
 
 
 def _train(trainer, label: str, setup: Setup) -> None:
-    t0, total = time.perf_counter(), trainer.config.iterations
+    t0, total = time.perf_counter(), trainer.total_steps
     every = max(1, total // 10)
     while trainer.step_count < total:
         stats = trainer.step()

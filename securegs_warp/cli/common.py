@@ -11,8 +11,8 @@ import sys
 
 import torch
 
-from ..config import (RunConfig, SecureConfig, apply_overrides, field_paths, first_difference, from_dict,
-                      resolve_field, to_dict)
+from ..config import (RESUMABLE_CHANGES, RunConfig, SecureConfig, apply_overrides, field_paths, first_difference,
+                      from_dict, resolve_field, to_dict)
 from ..rasterizer import RasterOptions
 from ..runs import RunFolder
 
@@ -176,7 +176,7 @@ def prepare_run(run: RunFolder, config: RunConfig, args) -> bool:
         raise CommandError(f"--out {run.path} is a file, not a folder")
     if args.resume and run.checkpoint.is_file():
         saved = from_dict(RunConfig, run.read_config())
-        field = first_difference(config, saved)
+        field = first_difference(config, saved, ignore=RESUMABLE_CHANGES)
         if field is not None:
             raise CommandError(f"{run.config}: the run was made with another {field} "
                                f"({_lookup(saved, field)!r}, now {_lookup(config, field)!r}); resume with the same "
@@ -233,7 +233,7 @@ def train_loop(trainer, run: RunFolder, args, finish, passphrase: str | None = N
     """Step the trainer to its iteration count with a progress bar, logs and checkpoints."""
     from tqdm import tqdm
 
-    total = trainer.config.iterations
+    total = trainer.total_steps
     bar = tqdm(total=total, initial=trainer.step_count, desc="train", unit="step", dynamic_ncols=True,
                disable=args.quiet)
     with _interrupt_between_steps() as stop:

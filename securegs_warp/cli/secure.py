@@ -65,6 +65,9 @@ SECURE_FLAGS = (
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-stride", "secure.hidden_stride", "train the hidden branch on every N-th step only, its loss weighted "
                                                 "N times (faster training, lower hidden fidelity; default 1)"),
+    ("--hidden-finish", "secure.hidden_finish", "after the joint run, train the private heads alone for this "
+                                                "fraction of --iterations more steps (the release does not "
+                                                "change, only the key; 0: none)"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "
                                                 "image, 1 for a scene); lower keeps the cover closer to plain "
                                                 "Scaffold-GS"),

@@ -20,6 +20,7 @@ from ..config import BOX_FRAME_DEFAULTS, SecureConfig, TrainConfig
 from ..data import Camera, SceneData
 from ..kept import Kept
 from ..train.losses import psnr
+from ..train.schedules import exponential_lr
 from ..train.trainer import ScaffoldTrainer
 from .crop import Crop, box_crop
 from .heads import PrivateHeads
@@ -38,6 +39,11 @@ BOX_MARGIN = 0.05
 # projections onto convex sets approach their intersection; the keys' directions are nearly
 # orthogonal, so few rounds are needed).
 PROJECTION_ROUNDS = 3
+# The finishing phase (SecureConfig.hidden_finish) restarts each private head's learning rate at its
+# schedule's value this far into the run and decays it to the schedule's final value: restarted at
+# the initial rate, the phase undid part of what the joint run had learnt (docs/results.md, "The
+# finishing phase").
+FINISH_LR_FROM = 0.5
 
 
 def secret_suffix(secret: int) -> str:
@@ -78,6 +84,10 @@ class SecureTrainer(ScaffoldTrainer):
         self._projections = Kept()
         # Each secret's crops (view index -> Crop or None), kept while its box is unchanged.
         self._crops = [Kept() for _ in self.payloads]
+        # Bits alone have no hidden render to finish.
+        self.finish_steps = round(secure.hidden_finish * config.iterations) \
+            if any(p.has_images for p in self.payloads) else 0
+        self._finish_optimizer = None  # made at the first finishing step
         super().__init__(scene, config, device=device, strategy=strategy)
 
     @property
@@ -127,6 +137,52 @@ class SecureTrainer(ScaffoldTrainer):
     def config_sections(self) -> dict:
         return {**super().config_sections(), "secure": self.secure}
 
+    # -- the finishing phase --------------------------------------------------------------------
+
+    @property
+    def total_steps(self) -> int:
+        """The joint run's iterations, then the finishing phase's steps."""
+        return self.config.iterations + self.finish_steps
+
+    def train_step(self, step: int, index: int) -> dict:
+        if step <= self.config.iterations:
+            return super().train_step(step, index)
+        return self._finish_step(step, index)
+
+    def _finish_step(self, step: int, index: int) -> dict:
+        """A step of the finishing phase (``SecureConfig.hidden_finish``): each secret's hidden loss
+        on training view ``index`` (with robust training's attacks) trains its private heads alone.
+        The release (anchors and public heads, and so the cover, the anchor cloud and the bits)
+        stays as the joint run left it. Reports "psnr" as the first hidden render's PSNR and
+        "phase": "finish"."""
+        optimizer = self._finishing_optimizer()
+        progress = FINISH_LR_FROM + (1.0 - FINISH_LR_FROM) * (step - self.config.iterations - 1) / self.finish_steps
+        for group in optimizer.param_groups:
+            group["lr"] = exponential_lr(*self._mlp_schedule(group["name"]), 1, progress)
+
+        def public():
+            with torch.no_grad():
+                return self.render(self.scene.train[index], camera_index=index)["gaussians"]
+
+        renders = []
+        extra, _ = self._hidden_losses(index, renders, step, self._attacked_anchors(public), None, 1.0)
+        loss = self.image_losses(renders)
+        loss.backward()
+        extra = {**extra, **self.checked_update(optimizer, renders, optimizer.step)}
+        extra = {key: value() if callable(value) else value for key, value in extra.items()}
+        first = next(value for key, value in extra.items() if key.startswith("psnr_hidden"))
+        return {"loss": loss.item(), "psnr": first, "phase": "finish", **self.size_stats(), **extra}
+
+    def _finishing_optimizer(self) -> torch.optim.Adam:
+        """Adam over the private heads alone; the release's parameters stop taking gradients."""
+        if self._finish_optimizer is None:
+            for param in (*self.model.anchors.parameters(), *self.model.heads.parameters()):
+                param.requires_grad_(False)
+            private = {name: module for name, module in self.head_groups().items() if name.startswith("private")}
+            self._finish_optimizer = self.adam([{"params": list(module.parameters()), "lr": 0.0, "name": name}
+                                                for name, module in private.items()])
+        return self._finish_optimizer
+
     # -- rendering ------------------------------------------------------------------------------
 
     def render_hidden(self, cam: Camera, camera_index: int | None = None, step: int | None = None,
@@ -150,43 +206,57 @@ class SecureTrainer(ScaffoldTrainer):
         return self.secure.hidden_feature_grad
 
     def extra_losses(self, index: int, renders: list, branches: dict, step: int) -> dict:
-        extra, hidden = {}, []
         stride = self.secure.hidden_stride
         if step % stride:
-            return extra  # a plain step between hidden ones (SecureConfig.hidden_stride)
-        # Robust training: this step's hidden renders read randomly attacked anchors (the bits are
-        # projected into every anchor after the update, see after_update).
-        anchors = None
-        if self.robust:
-            # Only prune-opacity reads the public opacities (their scatter costs a host synchronisation).
-            opacity = public_opacity(branches["public"][0], self.model.anchors) \
-                if any(a.name == "prune-opacity" for a in self.robust) else None
-            anchors = perturb(self.model.anchors, self.robust, self.generator, opacity)
+            return {}  # a plain step between hidden ones (SecureConfig.hidden_stride)
+        public = branches["public"][0]
+        anchors = self._attacked_anchors(lambda: public)
+        # Same anchors as the public render: its visibility test holds for the same view.
+        visible = public["visible_mask"] if anchors is None else None
+        extra, hidden = self._hidden_losses(index, renders, step, anchors, visible, stride)
+        if hidden:
+            branches["hidden"] = hidden
+        return extra
+
+    def _attacked_anchors(self, public):
+        """Robust training: this step's randomly attacked copy of the anchors for the hidden renders
+        (None without robust training; the bits are projected into every anchor after the update,
+        see after_update). ``public()``: the Gaussians of the step's public render, read only by prune-opacity (its
+        scatter of the public opacities costs a host synchronisation)."""
+        if not self.robust:
+            return None
+        opacity = public_opacity(public(), self.model.anchors) \
+            if any(a.name == "prune-opacity" for a in self.robust) else None
+        return perturb(self.model.anchors, self.robust, self.generator, opacity)
+
+    def _hidden_losses(self, index: int, renders: list, step: int, anchors, visible, scale: float):
+        """Appends each secret's hidden render of training view ``index`` (or of its image's view)
+        to ``renders``, weighted λ·``scale``. anchors: the attacked copy or None; visible: the public
+        render's visibility of view ``index`` for those anchors, or None. Returns (the numbers to
+        report, [(gaussians, info, weight)] of each hidden render for the strategy)."""
+        extra, hidden = {}, []
         for secret, p in enumerate(self.payloads):
             view = index if p.views is not None else p.image_view
             if view is None:
                 continue
-            # Same view and same anchors as the public render: its visibility test holds as it is.
-            visible = branches["public"][0]["visible_mask"] if view == index and anchors is None else None
             crop = self._hidden_crop(secret, view)
             # The Gaussians that fail the opacity test stay in the render at opacity 0 (a host
             # synchronisation fewer) unless the strategy reads the hidden Gaussians row by row.
             compact = self.strategy.reads_hidden
             out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
-                                     step=step, anchors=anchors, secret=secret, visible=visible, compact=compact,
+                                     step=step, anchors=anchors, secret=secret,
+                                     visible=visible if view == index else None, compact=compact,
                                      replay_raster=self.replays_hidden_raster(secret, anchors, compact, crop))
             target = p.views[view] if p.views is not None else p.image
             share = 1.0
             if crop is not None:
                 target, share = target[crop.rows, crop.cols], crop.share
                 out["pixel_share"] = share
-            renders.append((out, target, p.weight * stride))
-            hidden.append((out["gaussians"], out["info"], p.weight * stride))
+            renders.append((out, target, p.weight * scale))
+            hidden.append((out["gaussians"], out["info"], p.weight * scale))
             extra["psnr_hidden" + secret_suffix(secret)] = functools.partial(view_psnr, out["image"].detach(),
                                                                              target, share)
-        if hidden:
-            branches["hidden"] = hidden
-        return extra
+        return extra, hidden
 
     def replays_hidden_raster(self, secret: int, anchors, compact: bool, crop: Crop | None) -> bool:
         """Whether a training step's hidden render of secret ``secret`` rasterizes with
@@ -299,7 +369,8 @@ class SecureTrainer(ScaffoldTrainer):
         # The messages and seeds were drawn at random when the run began: resuming keeps them.
         return {**super().checkpoint_state(), "private": [private.state_dict() for private in self.model.secrets],
                 "messages": [None if p.bits is None else p.bits.detach().cpu() for p in self.payloads],
-                "bit_seeds": list(self.bit_seeds)}
+                "bit_seeds": list(self.bit_seeds),
+                "finish_optimizer": None if self._finish_optimizer is None else self._finish_optimizer.state_dict()}
 
     def restore(self, state: dict, path) -> None:
         super().restore(state, path)
@@ -325,6 +396,10 @@ class SecureTrainer(ScaffoldTrainer):
                 p.bits = message.to(self.device)
                 private.set_message(message_string(p.bits), seed, private.bits.cell)
                 private.to(self.device)
+        # restore_model made new anchors: a run stopped in its finishing phase freezes them again.
+        self._finish_optimizer = None
+        if state.get("finish_optimizer") is not None:
+            self._finishing_optimizer().load_state_dict(state["finish_optimizer"])
 
 
 def view_psnr(image: torch.Tensor, target: torch.Tensor, share: float) -> float:

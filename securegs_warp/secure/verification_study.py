@@ -43,7 +43,7 @@ def train_model(scene: SceneSpec, seed: int, iterations: int, raster: RasterOpti
     data = scene.load()
     config = TrainConfig(iterations=iterations, seed=seed, raster=raster)
     trainer = (ScaffoldTrainer(data, config) if secure is None else SecureTrainer(data, config, secure))
-    for _ in range(iterations):
+    while trainer.step_count < trainer.total_steps:
         trainer.step()
     psnr = float(trainer.evaluate(timing_repeats=1)["psnr"])
     kind = "plain" if secure is None else "container"

@@ -15,7 +15,7 @@ import time
 import torch
 
 from .. import evaluation
-from ..config import TrainConfig, first_difference, from_dict, to_dict
+from ..config import RESUMABLE_CHANGES, TrainConfig, first_difference, from_dict, to_dict
 from ..data import Camera, SceneData
 from ..keys import is_sealed, seal, unseal, write_private
 from .losses import batch_photometric_loss, photometric_loss, psnr
@@ -120,6 +120,11 @@ class ViewTrainer:
         """A render's loss term beyond the image (None: none; Scaffold-GS adds its volume term)."""
         return None
 
+    @property
+    def total_steps(self) -> int:
+        """The steps of a whole run (the SecureGS trainer adds its finishing phase)."""
+        return self.config.iterations
+
     def step(self) -> dict:
         """One training iteration. Returns {"loss", "psnr", size_stats(), what densification changed, ...}.
 
@@ -128,8 +133,17 @@ class ViewTrainer:
         """
         t0 = time.perf_counter()
         step = self.step_count + 1
-        self._update_learning_rates(step)
         index = self._next_view()  # taken off the order only when the step completes
+        result = self.train_step(step, index)
+        self._order.pop()
+        self.step_count = step
+        self.train_seconds += time.perf_counter() - t0
+        return result
+
+    def train_step(self, step: int, index: int) -> dict:
+        """Step ``step`` on training view ``index``: the public render and ``extra_losses``, one
+        backward, densification and the optimizer's update."""
+        self._update_learning_rates(step)
         out = self.render(self.scene.train[index], camera_index=index)
         target = self._targets[index]
         branches = {"public": (out["gaussians"], out["info"])}
@@ -137,33 +151,41 @@ class ViewTrainer:
         extra = self.extra_losses(index, renders, branches, step)
         loss = self.image_losses(renders)
         loss.backward()
-        bad = nonfinite_gradient_counts(self.optimizer)
-        # After that synchronisation, asking a captured render whether it was whole waits for nothing.
-        incomplete = incomplete_renders(renders)
         changed = {}
-        if bad or incomplete:
-            # Skip the whole update, as mixed-precision training does on overflow: see
-            # nonfinite_gradient_counts for why zeroing the bad entries is not enough; a render that
-            # lacked intersections gave the wrong gradients.
-            if bad:
-                extra = {**extra, "nonfinite_grads": sum(bad.values()), "nonfinite_groups": sorted(bad)}
-            if incomplete:
-                extra = {**extra, "incomplete_renders": incomplete}
-        else:
+
+        def update():
+            nonlocal changed
             if self.config.densify:
                 changed = self.densify(step, branches)
             self.optimizer.step()
             self.after_update()
-        self.optimizer.zero_grad(set_to_none=True)
+
+        extra = {**extra, **self.checked_update(self.optimizer, renders, update)}
         # Numbers that read the device (a host synchronisation each) are taken here, once the whole
         # step is queued; extra_losses may hand them over as functions for that reason.
         extra = {key: value() if callable(value) else value for key, value in extra.items()}
-        result = {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target), **self.size_stats(),
-                  **extra, **changed}
-        self._order.pop()
-        self.step_count = step
-        self.train_seconds += time.perf_counter() - t0
-        return result
+        return {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target), **self.size_stats(),
+                **extra, **changed}
+
+    @staticmethod
+    def checked_update(optimizer: torch.optim.Optimizer, renders: list, update) -> dict:
+        """After the backward of ``renders`` [(out, target, weight)]: call ``update()`` unless a
+        gradient of ``optimizer``'s is not finite or a captured render lacked intersections, then
+        clear the gradients. Returns what was skipped and why ({} when ``update`` ran)."""
+        bad = nonfinite_gradient_counts(optimizer)
+        # After that synchronisation, asking a captured render whether it was whole waits for nothing.
+        incomplete = incomplete_renders(renders)
+        skipped = {}
+        if bad:
+            # Skip the whole update, as mixed-precision training does on overflow: see
+            # nonfinite_gradient_counts for why zeroing the bad entries is not enough.
+            skipped.update(nonfinite_grads=sum(bad.values()), nonfinite_groups=sorted(bad))
+        if incomplete:  # a render that lacked intersections gave the wrong gradients
+            skipped["incomplete_renders"] = incomplete
+        if not skipped:
+            update()
+        optimizer.zero_grad(set_to_none=True)
+        return skipped
 
     def after_update(self) -> None:
         """Hook after each optimizer step (the SecureGS trainer moves the anchor features onto the
@@ -253,7 +275,7 @@ class ViewTrainer:
                 other = from_dict(type(value), saved[section], section)
             except ValueError as e:
                 raise ValueError(f"{path}: checkpoint was written with other training options ({e})") from None
-            field = first_difference(value, other, section)
+            field = first_difference(value, other, section, RESUMABLE_CHANGES)
             if field is not None:
                 raise ValueError(f"{path}: checkpoint was written with other training options ({field} differs); "
                                  "resume with the run's own config")
