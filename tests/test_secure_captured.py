@@ -26,10 +26,10 @@ def fresh_pool():
     raster_graph._POOL.clear()
 
 
-def _trainer(device, capture=True, serving=60, robust=None):
+def _trainer(device, capture=True, serving=60, robust=None, finish=0.0):
     scene = make_synthetic_scene(hidden="mug", level="object", width=96, height=72, n_train=4, n_test=1,
                                  n_points=600, device=device)
-    secure = apply_overrides(SecureConfig(payload="object", robust=robust),
+    secure = apply_overrides(SecureConfig(payload="object", robust=robust, hidden_finish=finish),
                              {"strategy.mode": "cover", "hidden_offsets": 4, "hidden_width": 16,
                               "hidden_anchors": serving, "hidden_capture": capture})
     torch.manual_seed(0)
@@ -209,3 +209,22 @@ def test_training_replays_the_decoder_at_every_hidden_step(monkeypatch):
     assert fake.replays == 12 and len(op_by_op) == fake.replays
     assert fake.captures == 2
 
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cuda", reason="a checkpoint on CUDA: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
+def test_a_run_on_cuda_resumes_into_its_finishing_phase(tmp_path):
+    """A CUDA run's checkpoint loads back onto CUDA (the random state goes back to the host), and
+    its finishing phase (SecureConfig.hidden_finish) trains the replayed hidden branch."""
+    t = _trainer("cuda", finish=1.0)
+    for _ in range(t.config.iterations):
+        t.step()
+    t.save_checkpoint(tmp_path / "run.pt")
+    before = t.evaluate_hidden()["psnr_hidden"]
+    resumed = _trainer("cuda", finish=1.0)
+    resumed.load_checkpoint(tmp_path / "run.pt")
+    assert resumed.step_count == t.config.iterations
+    while resumed.step_count < resumed.total_steps:
+        assert resumed.step()["phase"] == "finish"
+    assert resumed.model._captured[0]._graphs, "the finishing phase did not replay the decoder"
+    assert torch.isfinite(torch.cat([p.flatten() for p in resumed.model.secrets[0].parameters()])).all()
+    assert resumed.evaluate_hidden()["psnr_hidden"] > before - 1.0

@@ -145,7 +145,7 @@ class SecureTrainer(ScaffoldTrainer):
         return self.config.iterations + self.finish_steps
 
     def train_step(self, step: int, index: int) -> dict:
-        if step <= self.config.iterations:
+        if step <= self.config.iterations or not self.finish_steps:
             return super().train_step(step, index)
         return self._finish_step(step, index)
 
@@ -156,7 +156,7 @@ class SecureTrainer(ScaffoldTrainer):
         stays as the joint run left it. Reports "psnr" as the first hidden render's PSNR and
         "phase": "finish"."""
         optimizer = self._finishing_optimizer()
-        progress = FINISH_LR_FROM + (1.0 - FINISH_LR_FROM) * (step - self.config.iterations - 1) / self.finish_steps
+        progress = FINISH_LR_FROM + (1.0 - FINISH_LR_FROM) * min((step - self.config.iterations - 1) / self.finish_steps, 1.0)
         for group in optimizer.param_groups:
             group["lr"] = exponential_lr(*self._mlp_schedule(group["name"]), 1, progress)
 

@@ -259,7 +259,7 @@ class ViewTrainer:
         self.restore_model(state)
         self.optimizer.load_state_dict(state["optimizer"])
         self.strategy_state = state["strategy"]
-        self.generator.set_state(state["generator"])
+        self.generator.set_state(state["generator"].cpu())  # map_location put it on the run's device
         self._order = list(state["order"])
         self.step_count = int(state["step"])
         self.train_seconds = float(state["train_seconds"])
