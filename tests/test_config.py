@@ -106,7 +106,7 @@ def test_set_reaches_any_field_and_names_bad_ones(tmp_path, capsys):
 
 
 def test_robust_training_is_on_by_default_only_for_an_object_in_the_cover_mode():
-    from securegs_warp.config import BIT_MARGIN, ROBUST_BIT_MARGIN, ROBUST_RECIPE
+    from securegs_warp.config import BIT_MARGIN, FINISH_FRACTION, ROBUST_BIT_MARGIN, ROBUST_RECIPE
 
     secure = SecureConfig()
     assert secure.robust_spec(["object", "bits"], "cover") == ROBUST_RECIPE
@@ -115,7 +115,8 @@ def test_robust_training_is_on_by_default_only_for_an_object_in_the_cover_mode()
     for kinds, mode in ((["object"], "rdo"), (["image"], "rdo"), (["image", "object"], "cover"), (["bits"], "rdo")):
         assert secure.robust_spec(kinds, mode) is None and secure.margin(kinds, mode) == BIT_MARGIN
     off = apply_overrides(secure, {"robust": "none"})
-    assert off.robust is None and off.resolved(["object"], "cover") == apply_overrides(off, {"bit_margin": "1"})
+    assert off.robust is None and off.resolved(["object"], "cover") == apply_overrides(
+        off, {"bit_margin": "1", "hidden_finish": str(FINISH_FRACTION)})
     # an explicit recipe keeps the margin the run asked for, or the plain default
     given = apply_overrides(secure, {"robust": "noise-feat:0.2"})
     assert given.robust_spec(["bits"], "rdo") == "noise-feat:0.2" and given.margin(["bits"], "rdo") == BIT_MARGIN

@@ -542,6 +542,13 @@ def test_the_finishing_phase_trains_the_private_heads_alone_and_resumes(hidden_s
 
     # Bits alone have no hidden render: nothing to finish.
     assert SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:16", hidden_finish=1.0)).total_steps == 4
+    # By default an object in the cover mode gets FINISH_FRACTION; the paper's RDO, where it was not
+    # measured, none.
+    from securegs_warp.config import FINISH_FRACTION
+    longer_run = TrainConfig(iterations=40, raster=CPU_RASTER)
+    default = SecureTrainer(hidden_scene, longer_run, SecureConfig(payload="object+bits:16"))
+    assert (default.secure.hidden_finish, default.total_steps) == (FINISH_FRACTION, 40 + round(40 * FINISH_FRACTION))
+    assert SecureTrainer(hidden_scene, longer_run, SecureConfig(payload="object", strategy=RDO)).total_steps == 40
 
 
 def test_a_checkpoint_whose_private_heads_have_other_shapes_is_refused_by_name(hidden_scene, tmp_path, monkeypatch):

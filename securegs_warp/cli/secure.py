@@ -67,7 +67,9 @@ SECURE_FLAGS = (
                                                 "N times (faster training, lower hidden fidelity; default 1)"),
     ("--hidden-finish", "secure.hidden_finish", "after the joint run, train the private heads alone for this "
                                                 "fraction of --iterations more steps (the release does not "
-                                                "change, only the key; 0: none)"),
+                                                "change, only the key; 0: none; default 0.25 for an object in "
+                                                "the cover mode, 0 otherwise); a finished run can be resumed "
+                                                "with a longer one"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "
                                                 "image, 1 for a scene); lower keeps the cover closer to plain "
                                                 "Scaffold-GS"),
