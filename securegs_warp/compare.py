@@ -62,7 +62,8 @@ def train(trainer, label: str) -> dict:
     skipped by the trainer), ``nonfinite_at`` ([step, [parameter groups at fault]] of each),
     ``incomplete_steps`` (steps skipped because a captured render overflowed its intersection
     capacity), ``train_psnr_per_100`` (the mean training-view PSNR of every 100 steps, to see when
-    a run went wrong) and, for SecureGS, the ``robust`` training and ``bit_margin`` it resolved."""
+    a run went wrong) and, for SecureGS, the ``robust`` training, ``bit_margin`` and
+    ``hidden_finish`` it resolved."""
     t0 = time.perf_counter()
     nonfinite_at, trace, window = [], [], []
     incomplete = 0
@@ -83,7 +84,7 @@ def train(trainer, label: str) -> dict:
            "train_psnr_per_100": trace}
     secure = getattr(trainer, "secure", None)
     if secure is not None:  # a variant's label leaves the defaults it resolved unsaid
-        out.update(robust=secure.robust, bit_margin=secure.bit_margin)
+        out.update(robust=secure.robust, bit_margin=secure.bit_margin, hidden_finish=secure.hidden_finish)
     return out
 
 

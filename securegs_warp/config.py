@@ -358,7 +358,7 @@ class SecureConfig:
         for name in ("hidden_offsets", "hidden_width", "hidden_anchors", "hidden_depth", "hidden_stride"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.hidden_finish is not None and not self.hidden_finish >= 0.0:
+        if self.hidden_finish is not None and not 0.0 <= self.hidden_finish < math.inf:
             raise ValueError(f"hidden_finish must be >= 0 (a fraction of the iterations), got {self.hidden_finish}")
         if self.hidden_encoding is not None and self.hidden_encoding < 0:
             raise ValueError(f"hidden_encoding must be >= 0, got {self.hidden_encoding}")
@@ -609,8 +609,9 @@ def _set(config, parts: list[str], value, where: str):
     return dataclasses.replace(config, **{head: _coerce(hint, value, path)})
 
 
-# Options a resumed run may change: they act only after the steps a checkpoint can hold and do not
-# change the release, so a finished container can be given a longer finishing phase for a better key.
+# Options a resumed run may change: the finishing phase acts after the joint run and never changes
+# the release, so a run whose checkpoint has not begun it (a finished joint run with none, say) may
+# take one of any length; once begun, its length stays (SecureTrainer.restore).
 RESUMABLE_CHANGES = ("secure.hidden_finish",)
 
 

@@ -382,6 +382,32 @@ def test_cli_hide_reveal_demo(tmp_path, monkeypatch, capsys):
                  "--out", str(tmp_path / "w")]) == 2
 
 
+def test_cli_resume_keeps_or_changes_the_finishing_phase(tmp_path, capsys):
+    """`hide --resume` keeps the run's finishing phase unless --hidden-finish asks for another, which
+    a run that has not begun its phase takes and one that has refuses."""
+    out = tmp_path / "c"
+    args = ["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--hidden-offsets",
+            "2", "--hidden-width", "8", "--hidden-anchors", "40", *TINY]
+
+    def recorded():
+        return json.loads((out / "config.json").read_text())["secure"]["hidden_finish"]
+
+    def last_step():
+        return json.loads((out / "log.jsonl").read_text().splitlines()[-1])["step"]
+
+    assert main(args + ["--hidden-finish", "0"]) == 0
+    assert (recorded(), last_step()) == (0.0, 4)
+    assert main(args + ["--resume"]) == 0  # not the default 0.25: the run's own 0
+    assert (recorded(), last_step()) == (0.0, 4)
+    assert main(args + ["--resume", "--hidden-finish", "0.5"]) == 0
+    assert (recorded(), last_step()) == (0.5, 6)
+    assert json.loads((out / "log.jsonl").read_text().splitlines()[-1])["phase"] == "finish"
+    capsys.readouterr()
+    assert main(args + ["--resume", "--hidden-finish", "1"]) == 2
+    assert "finishing phase of hidden_finish 0.5" in capsys.readouterr().err
+    assert recorded() == 0.5
+
+
 def test_without_hdger_offsets_are_explicit_and_follow_growth(hidden_scene, tmp_path):
     trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=30, raster=CPU_RASTER),
                             SecureConfig(payload="object", hdger=False, strategy=RDO))
@@ -503,6 +529,7 @@ def test_the_finishing_phase_trains_the_private_heads_alone_and_resumes(hidden_s
     assert trainer.total_steps == 8
     for _ in range(4):
         assert "phase" not in trainer.step()
+    trainer.save_checkpoint(tmp_path / "joint.pt")
     release = _release_state(trainer)
     private = {name: t.detach().clone() for name, t in trainer.model.private.state_dict().items()}
     bits = trainer.bit_accuracy()
@@ -518,6 +545,8 @@ def test_the_finishing_phase_trains_the_private_heads_alone_and_resumes(hidden_s
     moved = trainer.model.private.state_dict()
     assert any(not torch.equal(private[name], moved[name]) for name in private if "offset_mlp" in name)
     assert trainer.bit_accuracy() == bits
+    # Frozen for the phase's steps only: afterwards the model trains like any other (an attack's fine-tuning).
+    assert trainer.model.anchors.feat.requires_grad and all(p.requires_grad for p in trainer.model.heads.parameters())
 
     trainer.save_checkpoint(tmp_path / "run.pt")
     resumed = SecureTrainer(hidden_scene, config, secure)
@@ -530,12 +559,18 @@ def test_the_finishing_phase_trains_the_private_heads_alone_and_resumes(hidden_s
     assert all(torch.equal(a, b) for a, b in zip(trainer.model.private.state_dict().values(),
                                                   resumed.model.private.state_dict().values()))
     assert all(torch.equal(t, _release_state(resumed)[name]) for name, t in _release_state(trainer).items())
+    # The last step of the phase runs at the schedule's final rate.
+    final = trainer._mlp_schedule(trainer._finish_optimizer.param_groups[0]["name"])[1]
+    assert trainer._finish_optimizer.param_groups[0]["lr"] == pytest.approx(final)
 
-    # A finished run may be resumed with a longer phase: the joint run and the release are the same.
+    # A run that has not begun its phase may take one of another length; one that has, may not.
     longer = SecureTrainer(hidden_scene, config, dataclasses.replace(secure, hidden_finish=2.0))
-    longer.load_checkpoint(tmp_path / "run.pt")
-    assert (longer.step_count, longer.total_steps) == (6, 12)
+    longer.load_checkpoint(tmp_path / "joint.pt")
+    assert (longer.step_count, longer.total_steps) == (4, 12)
     assert longer.step()["phase"] == "finish"
+    with pytest.raises(ValueError, match=r"2 steps into a finishing phase of hidden_finish 1\.0"):
+        SecureTrainer(hidden_scene, config, dataclasses.replace(secure, hidden_finish=2.0)).load_checkpoint(
+            tmp_path / "run.pt")
     with pytest.raises(ValueError, match="hidden_offsets differs"):
         SecureTrainer(hidden_scene, config, dataclasses.replace(secure, hidden_offsets=3)).load_checkpoint(
             tmp_path / "run.pt")

@@ -210,7 +210,6 @@ def test_training_replays_the_decoder_at_every_hidden_step(monkeypatch):
     assert fake.captures == 2
 
 
-
 @pytest.mark.skipif(TEST_DEVICE != "cuda", reason="a checkpoint on CUDA: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
 def test_a_run_on_cuda_resumes_into_its_finishing_phase(tmp_path):
     """A CUDA run's checkpoint loads back onto CUDA (the random state goes back to the host), and

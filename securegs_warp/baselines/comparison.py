@@ -126,7 +126,8 @@ def _train(trainer, label: str, setup: Setup) -> None:
         stats = trainer.step()
         if trainer.step_count % every == 0:
             size = stats.get("anchors", stats.get("gaussians"))
-            setup.log(f"  {label}: step {trainer.step_count}/{total}  psnr {stats['psnr']:.2f}  size {size}  "
+            what = "psnr_hidden" if stats.get("phase") == "finish" else "psnr"  # see ViewTrainer.step
+            setup.log(f"  {label}: step {trainer.step_count}/{total}  {what} {stats['psnr']:.2f}  size {size}  "
                       f"{time.perf_counter() - t0:.0f} s")
 
 

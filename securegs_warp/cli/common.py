@@ -124,10 +124,9 @@ def _default_of(field: str):
     return value
 
 
-def config_from_args(args, base: RunConfig, defaults: dict | None = None, device=None) -> RunConfig:
-    """``base`` with the command's defaults, every config flag the user gave and every ``--set
-    FIELD=VALUE`` applied (the flags win over ``--set`` on the same field); the rasterizer tile
-    follows the device unless ``--tile-size`` was given."""
+def given_fields(args, base: RunConfig) -> dict:
+    """Dotted field -> value of every config flag the user gave and every ``--set FIELD=VALUE``
+    (the flags win over ``--set`` on the same field)."""
     given = {name: value for name, value in vars(args).items() if "." in name and value is not None}
     settings = {}
     for setting in getattr(args, "settings", None) or []:
@@ -135,7 +134,13 @@ def config_from_args(args, base: RunConfig, defaults: dict | None = None, device
         if not sep or not name or not value:
             raise CommandError(f"--set {setting!r}: expected FIELD=VALUE")
         settings[resolve_field(base, name)] = value
-    given = {**settings, **given}
+    return {**settings, **given}
+
+
+def config_from_args(args, base: RunConfig, defaults: dict | None = None, device=None) -> RunConfig:
+    """``base`` with the command's defaults and ``given_fields`` applied; the rasterizer tile
+    follows the device unless ``--tile-size`` was given."""
+    given = given_fields(args, base)
     config = apply_overrides(base, {**(defaults or {}), **given})
     if "train.raster.tile_size" not in given and device is not None:
         config = apply_overrides(config, {"train.raster.tile_size": RasterOptions.for_device(device).tile_size})
@@ -230,7 +235,7 @@ CHANGE_KEYS = ("grown", "cloned", "opacity_reset", "nonfinite_grads", "incomplet
 
 
 def train_loop(trainer, run: RunFolder, args, finish, passphrase: str | None = None) -> int:
-    """Step the trainer to its iteration count with a progress bar, logs and checkpoints."""
+    """Step the trainer to its ``total_steps`` with a progress bar, logs and checkpoints."""
     from tqdm import tqdm
 
     total = trainer.total_steps
@@ -246,7 +251,8 @@ def train_loop(trainer, run: RunFolder, args, finish, passphrase: str | None = N
                 bar.close()
                 return _interrupted(trainer, run, passphrase)
             bar.update(1)
-            bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}",
+            label = "psnr_hidden" if stats.get("phase") == "finish" else "psnr"  # see ViewTrainer.step
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", **{label: f"{stats['psnr']:.2f}"},
                             **{k: stats[k] for k in ("anchors", "gaussians") if k in stats})
             step = trainer.step_count
             if step % args.log_every == 0 or step == total or any(k in stats for k in CHANGE_KEYS):

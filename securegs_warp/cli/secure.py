@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import RunConfig, SecureConfig, to_dict
+from ..config import RunConfig, SecureConfig, from_dict, to_dict
 from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
@@ -68,8 +68,8 @@ SECURE_FLAGS = (
     ("--hidden-finish", "secure.hidden_finish", "after the joint run, train the private heads alone for this "
                                                 "fraction of --iterations more steps (the release does not "
                                                 "change, only the key; 0: none; default 0.25 for an object in "
-                                                "the cover mode, 0 otherwise); a finished run can be resumed "
-                                                "with a longer one"),
+                                                "the cover mode, 0 otherwise); with --resume, a run that has "
+                                                "not begun its phase takes this one"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "
                                                 "image, 1 for a scene); lower keeps the cover closer to plain "
                                                 "Scaffold-GS"),
@@ -193,7 +193,15 @@ def _check_key_paths(args, secrets: list[SecretOptions]) -> None:
 def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
     """The run's config from the command line and the secrets' payloads; the payloads are checked
     against the scene here."""
-    config = common.config_from_args(args, RunConfig(secure=SecureConfig()), HIDE_DEFAULTS, device)
+    base = RunConfig(secure=SecureConfig())
+    config = common.config_from_args(args, base, HIDE_DEFAULTS, device)
+    run = RunFolder(args.out)
+    if args.resume and run.config.is_file() and "secure.hidden_finish" not in common.given_fields(args, base):
+        # A resumed run keeps its finishing phase unless the command asks for another (a run
+        # recorded before the option existed had none).
+        saved = from_dict(RunConfig, run.read_config()).secure
+        finish = 0.0 if saved is None or saved.hidden_finish is None else saved.hidden_finish
+        config = dataclasses.replace(config, secure=dataclasses.replace(config.secure, hidden_finish=finish))
     payload = SECRET_SEPARATOR.join(s.payload for s in secrets)
     specs = parse_secrets(payload)
     config = dataclasses.replace(config, secure=dataclasses.replace(config.secure, payload=payload))
@@ -207,8 +215,8 @@ def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
             scene = dataclasses.replace(scene, hidden="mug" if kinds[0] == "object" else "scene")
     elif scene.hidden is not None:
         raise CommandError(f"--hide {scene.hidden}: payload {payload!r} hides no object or scene")
-    # config.json records the mode, the robust training and the bit margin the payload chose, so
-    # that a later default cannot change a resumed run.
+    # config.json records the mode, the robust training, the bit margin and the finishing phase the
+    # payload chose, so that a later default cannot change a resumed run.
     secret_kinds = [spec.kind for spec in specs]
     mode = config.secure.strategy_mode(secret_kinds)
     secure = dataclasses.replace(config.secure.resolved(secret_kinds, mode),

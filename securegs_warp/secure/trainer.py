@@ -19,6 +19,7 @@ from .. import evaluation
 from ..config import BOX_FRAME_DEFAULTS, SecureConfig, TrainConfig
 from ..data import Camera, SceneData
 from ..kept import Kept
+from ..train.base import evaluated, frozen
 from ..train.losses import psnr
 from ..train.schedules import exponential_lr
 from ..train.trainer import ScaffoldTrainer
@@ -56,9 +57,11 @@ class SecureTrainer(ScaffoldTrainer):
 
     secure: the SecureGS options (payloads, λ, gradient shares, HDGER, density strategy); its
     strategy's schedule is scaled to ``config.iterations``. Attributes beyond the base class:
-    ``secure`` (with its robust training and bit margin resolved, ``SecureConfig.resolved``),
-    ``payloads`` (each secret's hidden targets, in the order of ``model.secrets``) and ``robust``
-    (the attacks the hidden branch trains against, parsed).
+    ``secure`` (with its robust training, bit margin and finishing phase resolved,
+    ``SecureConfig.resolved``), ``payloads`` (each secret's hidden targets, in the order of
+    ``model.secrets``), ``robust`` (the attacks the hidden branch trains against, parsed) and
+    ``finish_steps`` (the finishing phase's steps after ``config.iterations``; ``total_steps`` is
+    the run's whole length).
     """
 
     def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
@@ -87,7 +90,9 @@ class SecureTrainer(ScaffoldTrainer):
         # Bits alone have no hidden render to finish.
         self.finish_steps = round(secure.hidden_finish * config.iterations) \
             if any(p.has_images for p in self.payloads) else 0
-        self._finish_optimizer = None  # made at the first finishing step
+        # Made when the phase begins (or a checkpoint of it is restored): it holds the private
+        # heads alone, so nothing else can move in the phase.
+        self._finish_optimizer = None
         super().__init__(scene, config, device=device, strategy=strategy)
 
     @property
@@ -153,10 +158,12 @@ class SecureTrainer(ScaffoldTrainer):
         """A step of the finishing phase (``SecureConfig.hidden_finish``): each secret's hidden loss
         on training view ``index`` (with robust training's attacks) trains its private heads alone.
         The release (anchors and public heads, and so the cover, the anchor cloud and the bits)
-        stays as the joint run left it. Reports "psnr" as the first hidden render's PSNR and
-        "phase": "finish"."""
+        stays as the joint run left it (without HDGER that includes its explicit hidden offsets: only
+        the private MLPs train). Reports "psnr" as the first hidden render's PSNR and "phase":
+        "finish"."""
         optimizer = self._finishing_optimizer()
-        progress = FINISH_LR_FROM + (1.0 - FINISH_LR_FROM) * min((step - self.config.iterations - 1) / self.finish_steps, 1.0)
+        # From FINISH_LR_FROM of the schedule at the phase's first step to its end at the last.
+        progress = FINISH_LR_FROM + (1.0 - FINISH_LR_FROM) * (step - self.config.iterations) / self.finish_steps
         for group in optimizer.param_groups:
             group["lr"] = exponential_lr(*self._mlp_schedule(group["name"]), 1, progress)
 
@@ -165,19 +172,19 @@ class SecureTrainer(ScaffoldTrainer):
                 return self.render(self.scene.train[index], camera_index=index)["gaussians"]
 
         renders = []
-        extra, _ = self._hidden_losses(index, renders, step, self._attacked_anchors(public), None, 1.0)
-        loss = self.image_losses(renders)
-        loss.backward()
-        extra = {**extra, **self.checked_update(optimizer, renders, optimizer.step)}
-        extra = {key: value() if callable(value) else value for key, value in extra.items()}
+        # The release's parameters take no gradient for the step only: after the phase the model is
+        # an ordinary one again (an attack may fine-tune it).
+        with frozen(self.model.anchors, self.model.heads):
+            extra, _ = self._hidden_losses(index, renders, step, self._attacked_anchors(public), None, 1.0)
+            loss = self.image_losses(renders)
+            loss.backward()
+        extra = evaluated({**extra, **self.checked_update(optimizer, renders, optimizer.step)})
         first = next(value for key, value in extra.items() if key.startswith("psnr_hidden"))
         return {"loss": loss.item(), "psnr": first, "phase": "finish", **self.size_stats(), **extra}
 
     def _finishing_optimizer(self) -> torch.optim.Adam:
-        """Adam over the private heads alone; the release's parameters stop taking gradients."""
+        """Adam over the private heads alone."""
         if self._finish_optimizer is None:
-            for param in (*self.model.anchors.parameters(), *self.model.heads.parameters()):
-                param.requires_grad_(False)
             private = {name: module for name, module in self.head_groups().items() if name.startswith("private")}
             self._finish_optimizer = self.adam([{"params": list(module.parameters()), "lr": 0.0, "name": name}
                                                 for name, module in private.items()])
@@ -396,7 +403,14 @@ class SecureTrainer(ScaffoldTrainer):
                 p.bits = message.to(self.device)
                 private.set_message(message_string(p.bits), seed, private.bits.cell)
                 private.to(self.device)
-        # restore_model made new anchors: a run stopped in its finishing phase freezes them again.
+        if self.step_count > self.config.iterations:
+            # The phase's learning rates and Adam state belong to its length: once it has begun, the
+            # length stays (config.RESUMABLE_CHANGES lets a run change it before).
+            saved = state["config"]["secure"].get("hidden_finish")
+            if saved != self.secure.hidden_finish:
+                raise ValueError(f"{path}: the run is {self.step_count - self.config.iterations} steps into a "
+                                 f"finishing phase of hidden_finish {saved}; resume it with that value "
+                                 f"(not {self.secure.hidden_finish})")
         self._finish_optimizer = None
         if state.get("finish_optimizer") is not None:
             self._finishing_optimizer().load_state_dict(state["finish_optimizer"])

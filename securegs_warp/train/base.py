@@ -9,6 +9,7 @@ written atomically, so an interrupted run resumes where it stopped. Subclasses
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import time
 
@@ -126,7 +127,9 @@ class ViewTrainer:
         return self.config.iterations
 
     def step(self) -> dict:
-        """One training iteration. Returns {"loss", "psnr", size_stats(), what densification changed, ...}.
+        """One training iteration. Returns {"loss", "psnr", size_stats(), what densification changed, ...}
+        ("psnr": the training view's public render; the SecureGS trainer's finishing steps, marked
+        "phase": "finish", give their hidden render's instead).
 
         The step counter advances only once the step's work is done, so an interrupt in the middle
         leaves the trainer at the last completed step.
@@ -160,10 +163,7 @@ class ViewTrainer:
             self.optimizer.step()
             self.after_update()
 
-        extra = {**extra, **self.checked_update(self.optimizer, renders, update)}
-        # Numbers that read the device (a host synchronisation each) are taken here, once the whole
-        # step is queued; extra_losses may hand them over as functions for that reason.
-        extra = {key: value() if callable(value) else value for key, value in extra.items()}
+        extra = evaluated({**extra, **self.checked_update(self.optimizer, renders, update)})
         return {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target), **self.size_stats(),
                 **extra, **changed}
 
@@ -279,6 +279,27 @@ class ViewTrainer:
             if field is not None:
                 raise ValueError(f"{path}: checkpoint was written with other training options ({field} differs); "
                                  "resume with the run's own config")
+
+
+def evaluated(numbers: dict) -> dict:
+    """``numbers`` with each function replaced by its value. Numbers that read the device (a host
+    synchronisation each) are taken once the whole step is queued; ``extra_losses`` hands them over
+    as functions for that reason."""
+    return {key: value() if callable(value) else value for key, value in numbers.items()}
+
+
+@contextlib.contextmanager
+def frozen(*modules: torch.nn.Module):
+    """Within the block the parameters of ``modules`` that take gradients take none; afterwards
+    they do again."""
+    params = [p for module in modules for p in module.parameters() if p.requires_grad]
+    for p in params:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in params:
+            p.requires_grad_(True)
 
 
 def incomplete_renders(renders: list) -> int:
