@@ -24,6 +24,7 @@ from .config import SecureConfig, apply_overrides
 from .io.atomic import atomic_write
 from .secure.security import exposure
 from .strategies import MODES
+from .train.base import psnr_label
 
 BASELINE = "Scaffold-GS baseline"
 # What a secure_vs_baseline.py report's meta says of its scene and budget: runs that agree on all
@@ -69,7 +70,7 @@ def train(trainer, label: str) -> dict:
     incomplete = 0
     while trainer.step_count < trainer.total_steps:
         stats = trainer.step()
-        if stats.get("phase") != "finish":  # a finishing step's "psnr" is the hidden render's
+        if psnr_label(stats) == "psnr":  # the trace follows the public render
             window.append(stats["psnr"])
         if len(window) == 100:
             trace.append(round(float(np.mean(window)), 2))

@@ -38,6 +38,7 @@ from ..secure import SecureTrainer
 from ..secure.security import exposure
 from ..strategies import RegionAwareStrategy
 from ..train import GaussianTrainer, ScaffoldTrainer
+from ..train.base import psnr_label
 from .gs_hider import compare_row as gs_hider_row
 from .steganerf import StegaNeRF, hidden_image_for
 
@@ -126,9 +127,8 @@ def _train(trainer, label: str, setup: Setup) -> None:
         stats = trainer.step()
         if trainer.step_count % every == 0:
             size = stats.get("anchors", stats.get("gaussians"))
-            what = "psnr_hidden" if stats.get("phase") == "finish" else "psnr"  # see ViewTrainer.step
-            setup.log(f"  {label}: step {trainer.step_count}/{total}  {what} {stats['psnr']:.2f}  size {size}  "
-                      f"{time.perf_counter() - t0:.0f} s")
+            setup.log(f"  {label}: step {trainer.step_count}/{total}  {psnr_label(stats)} {stats['psnr']:.2f}  "
+                      f"size {size}  {time.perf_counter() - t0:.0f} s")
 
 
 def _leakage(setup: Setup, xyz: np.ndarray | None) -> dict | None:

@@ -15,6 +15,7 @@ from ..config import (RESUMABLE_CHANGES, RunConfig, SecureConfig, apply_override
                       from_dict, resolve_field, to_dict)
 from ..rasterizer import RasterOptions
 from ..runs import RunFolder
+from ..train.base import psnr_label
 
 
 class CommandError(ValueError):
@@ -251,8 +252,7 @@ def train_loop(trainer, run: RunFolder, args, finish, passphrase: str | None = N
                 bar.close()
                 return _interrupted(trainer, run, passphrase)
             bar.update(1)
-            label = "psnr_hidden" if stats.get("phase") == "finish" else "psnr"  # see ViewTrainer.step
-            bar.set_postfix(loss=f"{stats['loss']:.4f}", **{label: f"{stats['psnr']:.2f}"},
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", **{psnr_label(stats): f"{stats['psnr']:.2f}"},
                             **{k: stats[k] for k in ("anchors", "gaussians") if k in stats})
             step = trainer.step_count
             if step % args.log_every == 0 or step == total or any(k in stats for k in CHANGE_KEYS):

@@ -281,6 +281,12 @@ class ViewTrainer:
                                  "resume with the run's own config")
 
 
+def psnr_label(stats: dict) -> str:
+    """What a step's "psnr" (``ViewTrainer.step``) measures: "psnr" (the public render of the
+    training view) or, in the SecureGS trainer's finishing steps, "psnr_hidden"."""
+    return "psnr_hidden" if stats.get("phase") == "finish" else "psnr"
+
+
 def evaluated(numbers: dict) -> dict:
     """``numbers`` with each function replaced by its value. Numbers that read the device (a host
     synchronisation each) are taken once the whole step is queued; ``extra_losses`` hands them over
