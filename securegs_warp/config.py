@@ -266,7 +266,8 @@ class SecureConfig:
         the joint run left it: the cover, the anchor cloud and the bits do not change, only the key.
         During the joint run the anchor features the private heads read keep moving; the finishing
         phase fits the heads to the features that are published (docs/results.md, "The finishing
-        phase"). 0: none; None: FINISH_FRACTION for a run that hides an object in the cover mode,
+        phase"). The key keeps the mean of the heads' weights over the phase's second half
+        (``secure.trainer.FINISH_AVERAGE_FROM``). 0: none; None: FINISH_FRACTION for a run that hides an object in the cover mode,
         where it was measured, 0 otherwise (``finish_fraction``). Payloads without a hidden render
         (bits alone) have nothing to finish.
     hidden_capture: on CUDA, a box-frame key's decoding of its serving anchors (``hidden_anchors``

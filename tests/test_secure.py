@@ -586,6 +586,46 @@ def test_the_finishing_phase_trains_the_private_heads_alone_and_resumes(hidden_s
     assert SecureTrainer(hidden_scene, longer_run, SecureConfig(payload="object", strategy=RDO)).total_steps == 40
 
 
+def test_the_finishing_phase_keys_the_mean_of_its_late_weights_and_resumes_it(hidden_scene, tmp_path):
+    """The key's private heads are the mean of their weights after each phase step past
+    FINISH_AVERAGE_FROM of the phase, not the last step's; a checkpoint inside that window resumes
+    the mean to the same key."""
+    from securegs_warp.secure.trainer import FINISH_AVERAGE_FROM
+    config = TrainConfig(iterations=4, raster=CPU_RASTER)
+    secure = SecureConfig(payload="object", hidden_finish=1.0, hidden_offsets=2, hidden_width=8, hidden_anchors=40)
+    trainer = SecureTrainer(hidden_scene, config, secure)
+    while trainer.step_count < config.iterations:
+        trainer.step()
+    weights = lambda t: [p.detach().clone() for g in t._finishing_optimizer().param_groups for p in g["params"]]  # noqa: E731
+    seen = {}
+    fold = trainer._average_private
+
+    def recording(step):
+        seen[step] = weights(trainer)  # after the step's update, before the mean replaces them
+        fold(step)
+
+    trainer._average_private = recording
+    generator = None
+    while trainer.step_count < trainer.total_steps:
+        trainer.step()
+        if trainer.step_count == trainer.total_steps - 1:
+            trainer.save_checkpoint(tmp_path / "late.pt")
+            generator = trainer.generator.get_state()
+    window = [step for step in seen if step > config.iterations + FINISH_AVERAGE_FROM * trainer.finish_steps]
+    assert window == [7, 8]
+    mean = [torch.stack([seen[step][i] for step in window]).mean(0) for i in range(len(seen[8]))]
+    final = weights(trainer)
+    assert all(torch.allclose(f, m, atol=1e-7) for f, m in zip(final, mean))
+    assert any(not torch.allclose(f, last) for f, last in zip(final, seen[8]))
+
+    resumed = SecureTrainer(hidden_scene, config, secure)
+    resumed.load_checkpoint(tmp_path / "late.pt")
+    resumed.generator.set_state(generator)
+    while resumed.step_count < resumed.total_steps:
+        resumed.step()
+    assert all(torch.allclose(a, b, atol=1e-7) for a, b in zip(final, weights(resumed)))
+
+
 def test_a_checkpoint_whose_private_heads_have_other_shapes_is_refused_by_name(hidden_scene, tmp_path, monkeypatch):
     """The same config can mean other private-head shapes across versions (a default changed): resuming
     names the first tensor whose shape differs instead of failing inside load_state_dict."""

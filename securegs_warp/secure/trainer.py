@@ -45,6 +45,11 @@ PROJECTION_ROUNDS = 3
 # the initial rate, the phase undid part of what the joint run had learnt (docs/results.md, "The
 # finishing phase").
 FINISH_LR_FROM = 0.5
+# The key keeps the mean of the private heads' weights over the finishing phase's steps after this
+# fraction of it (stochastic weight averaging): each step trains against another random attack, so
+# the last step's weights are one noisy draw around what the phase converged to (docs/results.md,
+# "Averaging the finishing phase's weights").
+FINISH_AVERAGE_FROM = 0.5
 
 
 def secret_suffix(secret: int) -> str:
@@ -93,6 +98,9 @@ class SecureTrainer(ScaffoldTrainer):
         # Made when the phase begins (or a checkpoint of it is restored): it holds the private
         # heads alone, so nothing else can move in the phase.
         self._finish_optimizer = None
+        # The running mean of the private heads' weights late in the phase (_average_private):
+        # {"count": steps folded in, "weights": [tensor per parameter of the finishing optimizer]}.
+        self._finish_average = None
         super().__init__(scene, config, device=device, strategy=strategy)
 
     @property
@@ -179,8 +187,25 @@ class SecureTrainer(ScaffoldTrainer):
             loss = self.image_losses(renders)
             loss.backward()
         extra = evaluated({**extra, **self.checked_update(optimizer, renders, optimizer.step)})
+        self._average_private(step)
         first = next(value for key, value in extra.items() if key.startswith("psnr_hidden"))
         return {"loss": loss.item(), "psnr": first, "phase": "finish", **self.size_stats(), **extra}
+
+    @torch.no_grad()
+    def _average_private(self, step: int) -> None:
+        """After phase step ``step``: fold the private heads' weights into their running mean once
+        past FINISH_AVERAGE_FROM of the phase; at the phase's last step the heads take the mean."""
+        if step <= self.config.iterations + FINISH_AVERAGE_FROM * self.finish_steps:
+            return
+        params = [p for group in self._finishing_optimizer().param_groups for p in group["params"]]
+        if self._finish_average is None:
+            self._finish_average = {"count": 0, "weights": [torch.zeros_like(p) for p in params]}
+        self._finish_average["count"] += 1
+        for mean, p in zip(self._finish_average["weights"], params):
+            mean.add_(p - mean, alpha=1.0 / self._finish_average["count"])
+        if step == self.total_steps:
+            for mean, p in zip(self._finish_average["weights"], params):
+                p.copy_(mean)
 
     def _finishing_optimizer(self) -> torch.optim.Adam:
         """Adam over the private heads alone."""
@@ -377,7 +402,8 @@ class SecureTrainer(ScaffoldTrainer):
         return {**super().checkpoint_state(), "private": [private.state_dict() for private in self.model.secrets],
                 "messages": [None if p.bits is None else p.bits.detach().cpu() for p in self.payloads],
                 "bit_seeds": list(self.bit_seeds),
-                "finish_optimizer": None if self._finish_optimizer is None else self._finish_optimizer.state_dict()}
+                "finish_optimizer": None if self._finish_optimizer is None else self._finish_optimizer.state_dict(),
+                "finish_average": self._finish_average}
 
     def restore(self, state: dict, path) -> None:
         super().restore(state, path)
@@ -414,6 +440,9 @@ class SecureTrainer(ScaffoldTrainer):
         self._finish_optimizer = None
         if state.get("finish_optimizer") is not None:
             self._finishing_optimizer().load_state_dict(state["finish_optimizer"])
+        average = state.get("finish_average")  # None: not begun (or written before the averaging, which restarts)
+        self._finish_average = None if average is None else \
+            {"count": average["count"], "weights": [w.to(self.device) for w in average["weights"]]}
 
 
 def view_psnr(image: torch.Tensor, target: torch.Tensor, share: float) -> float:
