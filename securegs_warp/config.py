@@ -202,6 +202,11 @@ BIT_MARGIN = 1.0
 # the measured gain in hidden PSNR for about a tenth more training time (docs/results.md, "The
 # finishing phase").
 FINISH_FRACTION = 0.25
+# What the finishing phase trains against where ``robust`` "auto" chose ROBUST_RECIPE: harder dropout
+# than the joint run's. The release is frozen in the phase, so the heads' redundancy costs the cover
+# nothing; with the averaged key it kept 20% random pruning within 1 dB where the joint run's recipe
+# lost more, for a few tenths of a dB unattacked (docs/results.md, "Harder dropout in the phase").
+FINISH_ROBUST_RECIPE = "prune-random:0.5+noise-feat:0.3"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -270,6 +275,9 @@ class SecureConfig:
         (``secure.trainer.FINISH_AVERAGE_FROM``). 0: none; None: FINISH_FRACTION for a run that hides an object in the cover mode,
         where it was measured, 0 otherwise (``finish_fraction``). Payloads without a hidden render
         (bits alone) have nothing to finish.
+    finish_robust: the attacks the finishing phase trains against (``robust``'s syntax); None: none;
+        "auto": FINISH_ROBUST_RECIPE where ``robust`` "auto" chose ROBUST_RECIPE, ``robust``'s
+        resolved spec otherwise (``finish_robust_spec``).
     hidden_capture: on CUDA, a box-frame key's decoding of its serving anchors (``hidden_anchors``
         > 0) is replayed from CUDA graphs during training (``secure.captured``): the same values up
         to float rounding, for a fraction of the host work; in the cover mode without the hidden
@@ -299,6 +307,7 @@ class SecureConfig:
     hidden_crop: bool = False
     hidden_stride: int = 1
     hidden_finish: float | None = None
+    finish_robust: str | None = "auto"
     hidden_capture: bool = True
 
     def strategy_mode(self, kinds) -> str:
@@ -321,6 +330,15 @@ class SecureConfig:
         measured = mode == "cover" and "object" in kinds and all(kind in ("object", "bits") for kind in kinds)
         return ROBUST_RECIPE if measured else None
 
+    def finish_robust_spec(self, kinds, mode: str) -> str | None:
+        """The attacks the finishing phase of such a run trains against: ``finish_robust``, with
+        "auto" resolved (FINISH_ROBUST_RECIPE where ``robust`` "auto" chose ROBUST_RECIPE, where it
+        was measured; the joint run's attacks otherwise)."""
+        if self.finish_robust != "auto":
+            return self.finish_robust
+        joint = self.robust_spec(kinds, mode)
+        return FINISH_ROBUST_RECIPE if self.robust == "auto" and joint else joint
+
     def margin(self, kinds, mode: str) -> float:
         """``bit_margin``, or its default for such a run: the recipe's where "auto" chose the recipe
         (``robust_spec``), BIT_MARGIN otherwise (an explicit ``robust`` keeps it: nothing else
@@ -336,11 +354,12 @@ class SecureConfig:
         return FINISH_FRACTION if mode == "cover" and "object" in kinds else 0.0
 
     def resolved(self, kinds, mode: str) -> "SecureConfig":
-        """This config with ``robust``, ``bit_margin`` and ``hidden_finish`` as a run hiding ``kinds``
-        in ``mode`` uses them (what config.json and a checkpoint record, so that a later default
-        cannot change a resumed run)."""
+        """This config with ``robust``, ``bit_margin``, ``hidden_finish`` and ``finish_robust`` as a run
+        hiding ``kinds`` in ``mode`` uses them (what config.json and a checkpoint record, so that a
+        later default cannot change a resumed run)."""
         return dataclasses.replace(self, robust=self.robust_spec(kinds, mode), bit_margin=self.margin(kinds, mode),
-                                   hidden_finish=self.finish_fraction(kinds, mode))
+                                   hidden_finish=self.finish_fraction(kinds, mode),
+                                   finish_robust=self.finish_robust_spec(kinds, mode))
 
     def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
@@ -374,10 +393,11 @@ class SecureConfig:
                               ("feature_grad_until", "a fraction of the run")):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must lie in [0, 1] ({meaning}), got {getattr(self, name)}")
-        if self.robust not in (None, "auto"):
-            from .secure.robust import parse_robust  # the attacks module imports this one
+        for name in ("robust", "finish_robust"):
+            if getattr(self, name) not in (None, "auto"):
+                from .secure.robust import parse_robust  # the attacks module imports this one
 
-            parse_robust(self.robust)
+                parse_robust(getattr(self, name))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -612,8 +632,8 @@ def _set(config, parts: list[str], value, where: str):
 
 # Options a resumed run may change: the finishing phase acts after the joint run and never changes
 # the release, so a run whose checkpoint has not begun it (a finished joint run with none, say) may
-# take one of any length; once begun, its length stays (SecureTrainer.restore).
-RESUMABLE_CHANGES = ("secure.hidden_finish",)
+# take one of any length and attacks; once begun, they stay (SecureTrainer.restore).
+RESUMABLE_CHANGES = ("secure.hidden_finish", "secure.finish_robust")
 
 
 def first_difference(a, b, where: str = "", ignore: tuple = ()) -> str | None:

@@ -116,7 +116,7 @@ def test_robust_training_is_on_by_default_only_for_an_object_in_the_cover_mode()
         assert secure.robust_spec(kinds, mode) is None and secure.margin(kinds, mode) == BIT_MARGIN
     off = apply_overrides(secure, {"robust": "none"})
     assert off.robust is None and off.resolved(["object"], "cover") == apply_overrides(
-        off, {"bit_margin": "1", "hidden_finish": str(FINISH_FRACTION)})
+        off, {"bit_margin": "1", "hidden_finish": str(FINISH_FRACTION), "finish_robust": "none"})
     # an explicit recipe keeps the margin the run asked for, or the plain default
     given = apply_overrides(secure, {"robust": "noise-feat:0.2"})
     assert given.robust_spec(["bits"], "rdo") == "noise-feat:0.2" and given.margin(["bits"], "rdo") == BIT_MARGIN

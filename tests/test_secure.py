@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from securegs_warp.cli import main
+from securegs_warp.config import FINISH_ROBUST_RECIPE, apply_overrides
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.io import anchor_ply_properties
 from securegs_warp.io.gs_ply import read_vertex_ply
@@ -389,23 +390,26 @@ def test_cli_resume_keeps_or_changes_the_finishing_phase(tmp_path, capsys):
     args = ["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--hidden-offsets",
             "2", "--hidden-width", "8", "--hidden-anchors", "40", *TINY]
 
-    def recorded():
-        return json.loads((out / "config.json").read_text())["secure"]["hidden_finish"]
+    def recorded(name="hidden_finish"):
+        return json.loads((out / "config.json").read_text())["secure"][name]
 
     def last_step():
         return json.loads((out / "log.jsonl").read_text().splitlines()[-1])["step"]
 
     assert main(args + ["--hidden-finish", "0"]) == 0
     assert (recorded(), last_step()) == (0.0, 4)
+    assert recorded("finish_robust") == FINISH_ROBUST_RECIPE  # "auto", resolved for the record
     assert main(args + ["--resume"]) == 0  # not the default 0.25: the run's own 0
     assert (recorded(), last_step()) == (0.0, 4)
-    assert main(args + ["--resume", "--hidden-finish", "0.5"]) == 0
-    assert (recorded(), last_step()) == (0.5, 6)
+    assert main(args + ["--resume", "--hidden-finish", "0.5", "--finish-robust", "noise-feat:0.2"]) == 0
+    assert (recorded(), last_step(), recorded("finish_robust")) == (0.5, 6, "noise-feat:0.2")
     assert json.loads((out / "log.jsonl").read_text().splitlines()[-1])["phase"] == "finish"
     capsys.readouterr()
     assert main(args + ["--resume", "--hidden-finish", "1"]) == 2
     assert "finishing phase of hidden_finish 0.5" in capsys.readouterr().err
-    assert recorded() == 0.5
+    assert main(args + ["--resume", "--finish-robust", "none"]) == 2
+    assert "finishing phase of finish_robust noise-feat:0.2" in capsys.readouterr().err
+    assert (recorded(), recorded("finish_robust")) == (0.5, "noise-feat:0.2")
 
 
 def test_without_hdger_offsets_are_explicit_and_follow_growth(hidden_scene, tmp_path):
@@ -584,6 +588,35 @@ def test_the_finishing_phase_trains_the_private_heads_alone_and_resumes(hidden_s
     default = SecureTrainer(hidden_scene, longer_run, SecureConfig(payload="object+bits:16"))
     assert (default.secure.hidden_finish, default.total_steps) == (FINISH_FRACTION, 40 + round(40 * FINISH_FRACTION))
     assert SecureTrainer(hidden_scene, longer_run, SecureConfig(payload="object", strategy=RDO)).total_steps == 40
+
+
+def test_the_finishing_phase_trains_against_its_own_attacks(hidden_scene, monkeypatch):
+    """The joint run's hidden branch trains against ``robust``, the finishing phase's against
+    ``finish_robust``; "auto" gives the phase FINISH_ROBUST_RECIPE only where ``robust`` "auto" chose
+    ROBUST_RECIPE, and the joint run's attacks otherwise."""
+    import securegs_warp.secure.trainer as trainer_module
+    from securegs_warp.config import ROBUST_RECIPE
+
+    auto = SecureConfig()
+    assert auto.finish_robust_spec(["object", "bits"], "cover") == FINISH_ROBUST_RECIPE
+    assert auto.robust_spec(["object", "bits"], "cover") == ROBUST_RECIPE
+    assert auto.finish_robust_spec(["image"], "rdo") is None
+    assert apply_overrides(auto, {"robust": "noise-feat:0.2"}).finish_robust_spec(["object"], "cover") == "noise-feat:0.2"
+    assert apply_overrides(auto, {"robust": "none"}).finish_robust_spec(["object"], "cover") is None
+    assert apply_overrides(auto, {"finish_robust": "none"}).finish_robust_spec(["object"], "cover") is None
+    with pytest.raises(ValueError, match="robust"):
+        SecureConfig(finish_robust="noise-offset:0.1")
+
+    drawn = []
+    perturb = trainer_module.perturb
+    monkeypatch.setattr(trainer_module, "perturb",
+                        lambda anchors, attacks, *a: drawn.append([x.text for x in attacks]) or perturb(anchors, attacks, *a))
+    secure = SecureConfig(payload="object", robust="noise-feat:0.1", finish_robust="prune-random:0.9", hidden_finish=1.0,
+                          hidden_offsets=2, hidden_width=8, hidden_anchors=40)
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=2, raster=CPU_RASTER), secure)
+    for _ in range(3):
+        trainer.step()
+    assert drawn == [["noise-feat:0.1"], ["noise-feat:0.1"], ["prune-random:0.9"]]
 
 
 def test_the_finishing_phase_keys_the_mean_of_its_late_weights_and_resumes_it(hidden_scene, tmp_path):

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import RunConfig, SecureConfig, from_dict, to_dict
+from ..config import RunConfig, SecureConfig, to_dict
 from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
@@ -70,6 +70,10 @@ SECURE_FLAGS = (
                                                 "change, only the key; 0: none; default 0.25 for an object in "
                                                 "the cover mode, 0 otherwise); with --resume, a run that has "
                                                 "not begun its phase takes this one"),
+    ("--finish-robust", "secure.finish_robust", "attacks the finishing phase trains against, joined with + (as "
+                                                "--robust; none: none; auto: prune-random:0.5+noise-feat:0.3 where "
+                                                "--robust auto chose its recipe, --robust's attacks otherwise); with "
+                                                "--resume, a run that has not begun its phase takes these"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "
                                                 "image, 1 for a scene); lower keeps the cover closer to plain "
                                                 "Scaffold-GS"),
@@ -196,12 +200,16 @@ def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
     base = RunConfig(secure=SecureConfig())
     config = common.config_from_args(args, base, HIDE_DEFAULTS, device)
     run = RunFolder(args.out)
-    if args.resume and run.config.is_file() and "secure.hidden_finish" not in common.given_fields(args, base):
-        # A resumed run keeps its finishing phase unless the command asks for another (a run
-        # recorded before the option existed had none).
-        saved = from_dict(RunConfig, run.read_config()).secure
-        finish = 0.0 if saved is None or saved.hidden_finish is None else saved.hidden_finish
-        config = dataclasses.replace(config, secure=dataclasses.replace(config.secure, hidden_finish=finish))
+    if args.resume and run.config.is_file():
+        # A resumed run keeps its finishing phase's length and attacks unless the command asks for
+        # others (a run recorded before an option existed had no phase, and trained a phase against
+        # the joint run's attacks).
+        recorded = run.read_config().get("secure") or {}
+        kept = {"hidden_finish": recorded.get("hidden_finish") or 0.0,
+                "finish_robust": recorded.get("finish_robust", recorded.get("robust"))}
+        given = common.given_fields(args, base)
+        kept = {name: value for name, value in kept.items() if f"secure.{name}" not in given}
+        config = dataclasses.replace(config, secure=dataclasses.replace(config.secure, **kept))
     payload = SECRET_SEPARATOR.join(s.payload for s in secrets)
     specs = parse_secrets(payload)
     config = dataclasses.replace(config, secure=dataclasses.replace(config.secure, payload=payload))

@@ -85,6 +85,7 @@ class SecureTrainer(ScaffoldTrainer):
         strategy = dataclasses.replace(secure.strategy.scaled_to(config.iterations), mode=secure.strategy_mode(kinds))
         self.secure = secure = secure.resolved(kinds, strategy.mode)
         self.robust = parse_robust(secure.robust) if secure.robust else []
+        self.finish_robust = parse_robust(secure.finish_robust) if secure.finish_robust else []
         strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
                              and any(p.spec.kind in ("object", "image") for p in self.payloads))
         self.strategy = strategy  # the private heads, built with the model, read its mode
@@ -183,7 +184,8 @@ class SecureTrainer(ScaffoldTrainer):
         # The release's parameters take no gradient for the step only: after the phase the model is
         # an ordinary one again (an attack may fine-tune it).
         with frozen(self.model.anchors, self.model.heads):
-            extra, _ = self._hidden_losses(index, renders, step, self._attacked_anchors(public), None, 1.0)
+            extra, _ = self._hidden_losses(index, renders, step, self._attacked_anchors(public, self.finish_robust),
+                                           None, 1.0)
             loss = self.image_losses(renders)
             loss.backward()
         extra = evaluated({**extra, **self.checked_update(optimizer, renders, optimizer.step)})
@@ -242,7 +244,7 @@ class SecureTrainer(ScaffoldTrainer):
         if step % stride:
             return {}  # a plain step between hidden ones (SecureConfig.hidden_stride)
         public = branches["public"][0]
-        anchors = self._attacked_anchors(lambda: public)
+        anchors = self._attacked_anchors(lambda: public, self.robust)
         # Same anchors as the public render: its visibility test holds for the same view.
         visible = public["visible_mask"] if anchors is None else None
         extra, hidden = self._hidden_losses(index, renders, step, anchors, visible, stride)
@@ -250,16 +252,17 @@ class SecureTrainer(ScaffoldTrainer):
             branches["hidden"] = hidden
         return extra
 
-    def _attacked_anchors(self, public):
-        """Robust training: this step's randomly attacked copy of the anchors for the hidden renders
-        (None without robust training; the bits are projected into every anchor after the update,
-        see after_update). ``public()``: the Gaussians of the step's public render, read only by prune-opacity (its
-        scatter of the public opacities costs a host synchronisation)."""
-        if not self.robust:
+    def _attacked_anchors(self, public, attacks: list):
+        """Robust training: this step's copy of the anchors attacked by ``attacks`` (``self.robust``
+        in the joint run, ``self.finish_robust`` in the finishing phase) for the hidden renders (None
+        without attacks; the bits are projected into every anchor after the update, see
+        after_update). ``public()``: the Gaussians of the step's public render, read only by
+        prune-opacity (its scatter of the public opacities costs a host synchronisation)."""
+        if not attacks:
             return None
         opacity = public_opacity(public(), self.model.anchors) \
-            if any(a.name == "prune-opacity" for a in self.robust) else None
-        return perturb(self.model.anchors, self.robust, self.generator, opacity)
+            if any(a.name == "prune-opacity" for a in attacks) else None
+        return perturb(self.model.anchors, attacks, self.generator, opacity)
 
     def _hidden_losses(self, index: int, renders: list, step: int, anchors, visible, scale: float):
         """Appends each secret's hidden render of training view ``index`` (or of its image's view)
@@ -430,13 +433,17 @@ class SecureTrainer(ScaffoldTrainer):
                 private.set_message(message_string(p.bits), seed, private.bits.cell)
                 private.to(self.device)
         if self.step_count > self.config.iterations:
-            # The phase's learning rates and Adam state belong to its length: once it has begun, the
-            # length stays (config.RESUMABLE_CHANGES lets a run change it before).
-            saved = state["config"]["secure"].get("hidden_finish")
-            if saved != self.secure.hidden_finish:
-                raise ValueError(f"{path}: the run is {self.step_count - self.config.iterations} steps into a "
-                                 f"finishing phase of hidden_finish {saved}; resume it with that value "
-                                 f"(not {self.secure.hidden_finish})")
+            # The phase's learning rates, Adam state and running mean belong to its length and
+            # attacks: once it has begun, they stay (config.RESUMABLE_CHANGES lets a run change
+            # them before). A checkpoint written before finish_robust existed trained its phase
+            # against the joint run's attacks.
+            secure = state["config"]["secure"]
+            for name, saved in (("hidden_finish", secure.get("hidden_finish")),
+                                ("finish_robust", secure.get("finish_robust", secure.get("robust")))):
+                if saved != getattr(self.secure, name):
+                    raise ValueError(f"{path}: the run is {self.step_count - self.config.iterations} steps into a "
+                                     f"finishing phase of {name} {saved}; resume it with that value "
+                                     f"(not {getattr(self.secure, name)})")
         self._finish_optimizer = None
         if state.get("finish_optimizer") is not None:
             self._finishing_optimizer().load_state_dict(state["finish_optimizer"])
