@@ -272,9 +272,9 @@ class SecureConfig:
         During the joint run the anchor features the private heads read keep moving; the finishing
         phase fits the heads to the features that are published (docs/results.md, "The finishing
         phase"). The key keeps the mean of the heads' weights over the phase's second half
-        (``secure.trainer.FINISH_AVERAGE_FROM``). 0: none; None: FINISH_FRACTION for a run that hides an object in the cover mode,
-        where it was measured, 0 otherwise (``finish_fraction``). Payloads without a hidden render
-        (bits alone) have nothing to finish.
+        (``secure.trainer.FINISH_AVERAGE_FROM``). 0: none; None: FINISH_FRACTION for a run that
+        hides an object in the cover mode, where it was measured, 0 otherwise
+        (``finish_fraction``). Payloads without a hidden render (bits alone) have nothing to finish.
     finish_robust: the attacks the finishing phase trains against (``robust``'s syntax); None: none;
         "auto": FINISH_ROBUST_RECIPE where ``robust`` "auto" chose ROBUST_RECIPE, ``robust``'s
         resolved spec otherwise (``finish_robust_spec``).

@@ -64,8 +64,8 @@ class SecureTrainer(ScaffoldTrainer):
     strategy's schedule is scaled to ``config.iterations``. Attributes beyond the base class:
     ``secure`` (with its robust training, bit margin and finishing phase resolved,
     ``SecureConfig.resolved``), ``payloads`` (each secret's hidden targets, in the order of
-    ``model.secrets``), ``robust`` (the attacks the hidden branch trains against, parsed) and
-    ``finish_steps`` (the finishing phase's steps after ``config.iterations``; ``total_steps`` is
+    ``model.secrets``), ``robust`` and ``finish_robust`` (the attacks the hidden branch trains
+    against in the joint run and in the finishing phase, parsed) and ``finish_steps`` (the finishing phase's steps after ``config.iterations``; ``total_steps`` is
     the run's whole length).
     """
 
