@@ -85,7 +85,8 @@ def train(trainer, label: str) -> dict:
            "train_psnr_per_100": trace}
     secure = getattr(trainer, "secure", None)
     if secure is not None:  # a variant's label leaves the defaults it resolved unsaid
-        out.update(robust=secure.robust, bit_margin=secure.bit_margin, hidden_finish=secure.hidden_finish)
+        out.update(robust=secure.robust, bit_margin=secure.bit_margin, hidden_finish=secure.hidden_finish,
+                   finish_robust=secure.finish_robust)
     return out
 
 

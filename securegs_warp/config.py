@@ -397,7 +397,7 @@ class SecureConfig:
             if getattr(self, name) not in (None, "auto"):
                 from .secure.robust import parse_robust  # the attacks module imports this one
 
-                parse_robust(getattr(self, name))
+                parse_robust(getattr(self, name), name)
 
 
 @dataclasses.dataclass(frozen=True)

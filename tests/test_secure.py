@@ -604,7 +604,7 @@ def test_the_finishing_phase_trains_against_its_own_attacks(hidden_scene, monkey
     assert apply_overrides(auto, {"robust": "noise-feat:0.2"}).finish_robust_spec(["object"], "cover") == "noise-feat:0.2"
     assert apply_overrides(auto, {"robust": "none"}).finish_robust_spec(["object"], "cover") is None
     assert apply_overrides(auto, {"finish_robust": "none"}).finish_robust_spec(["object"], "cover") is None
-    with pytest.raises(ValueError, match="robust"):
+    with pytest.raises(ValueError, match="^finish_robust: noise-offset:0.1 cannot be trained against"):
         SecureConfig(finish_robust="noise-offset:0.1")
 
     drawn = []

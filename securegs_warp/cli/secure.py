@@ -202,8 +202,8 @@ def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
     run = RunFolder(args.out)
     if args.resume and run.config.is_file():
         # A resumed run keeps its finishing phase's length and attacks unless the command asks for
-        # others (a run recorded before an option existed had no phase, and trained a phase against
-        # the joint run's attacks).
+        # others. A run recorded before hidden_finish existed had no phase; one recorded before
+        # finish_robust existed trained its phase against the joint run's attacks.
         recorded = run.read_config().get("secure") or {}
         kept = {"hidden_finish": recorded.get("hidden_finish") or 0.0,
                 "finish_robust": recorded.get("finish_robust", recorded.get("robust"))}
@@ -313,7 +313,7 @@ def finish_container(trainer, run: RunFolder, config: RunConfig, secrets: list[S
         metrics.update({"key_file" + suffix: path.name if path.parent == run.path else str(path),
                         "payload" + suffix: p.spec.describe()})
     metrics.update(anchors=trainer.model.anchors.num_anchors, train_seconds=round(trainer.train_seconds, 2),
-                   mode=trainer.strategy.mode, robust=trainer.secure.robust,
+                   mode=trainer.strategy.mode, robust=trainer.secure.robust, finish_robust=trainer.secure.finish_robust,
                    bit_margin=trainer.secure.bit_margin, hidden_anchors=int(trainer.strategy_state["is_hidden"].sum()))
     scene = trainer.scene
     if scene.hidden_points is not None:

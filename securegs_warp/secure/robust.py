@@ -24,18 +24,19 @@ ROBUST_ATTACKS = ("prune-random", "prune-opacity", "noise-xyz", "noise-feat", "q
 QUANTIZE_MAX_BITS = 16
 
 
-def parse_robust(text: str) -> list[Attack]:
+def parse_robust(text: str, option: str = "robust") -> list[Attack]:
     """``A+B+...`` -> attacks; refuses unknown specs, repeats and attacks the hidden branch cannot
-    train against, in one line naming the ones it can."""
+    train against, in one line naming ``option`` (the config field that holds ``text``) and the
+    attacks it can."""
     attacks = [Attack.parse(part) for part in text.split("+")]
     for attack in attacks:
         if attack.name not in ROBUST_ATTACKS:
             why = " (the hidden branch does not read the public offsets)" if attack.name == "noise-offset" else ""
-            raise ValueError(f"robust: {attack.text} cannot be trained against{why}; use "
+            raise ValueError(f"{option}: {attack.text} cannot be trained against{why}; use "
                              f"{', '.join(ROBUST_ATTACKS)} joined with +")
     names = [a.name for a in attacks]
     if len(set(names)) != len(names):
-        raise ValueError(f"robust {text!r} names an attack twice")
+        raise ValueError(f"{option} {text!r} names an attack twice")
     return attacks
 
 

@@ -65,8 +65,8 @@ class SecureTrainer(ScaffoldTrainer):
     ``secure`` (with its robust training, bit margin and finishing phase resolved,
     ``SecureConfig.resolved``), ``payloads`` (each secret's hidden targets, in the order of
     ``model.secrets``), ``robust`` and ``finish_robust`` (the attacks the hidden branch trains
-    against in the joint run and in the finishing phase, parsed) and ``finish_steps`` (the finishing phase's steps after ``config.iterations``; ``total_steps`` is
-    the run's whole length).
+    against in the joint run and in the finishing phase, parsed) and ``finish_steps`` (the
+    finishing phase's steps after ``config.iterations``; ``total_steps`` is the run's whole length).
     """
 
     def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
@@ -165,7 +165,7 @@ class SecureTrainer(ScaffoldTrainer):
 
     def _finish_step(self, step: int, index: int) -> dict:
         """A step of the finishing phase (``SecureConfig.hidden_finish``): each secret's hidden loss
-        on training view ``index`` (with robust training's attacks) trains its private heads alone.
+        on training view ``index`` (against ``finish_robust``'s attacks) trains its private heads alone.
         The release (anchors and public heads, and so the cover, the anchor cloud and the bits)
         stays as the joint run left it (without HDGER that includes its explicit hidden offsets: only
         the private MLPs train). Reports "psnr" as the first hidden render's PSNR and "phase":
@@ -447,7 +447,8 @@ class SecureTrainer(ScaffoldTrainer):
         self._finish_optimizer = None
         if state.get("finish_optimizer") is not None:
             self._finishing_optimizer().load_state_dict(state["finish_optimizer"])
-        average = state.get("finish_average")  # None: not begun (or written before the averaging, which restarts)
+        # None: written before the averaging window (or before the averaging existed: it restarts here).
+        average = state.get("finish_average")
         self._finish_average = None if average is None else \
             {"count": average["count"], "weights": [w.to(self.device) for w in average["weights"]]}
 
