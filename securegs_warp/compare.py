@@ -63,8 +63,8 @@ def train(trainer, label: str) -> dict:
     skipped by the trainer), ``nonfinite_at`` ([step, [parameter groups at fault]] of each),
     ``incomplete_steps`` (steps skipped because a captured render overflowed its intersection
     capacity), ``train_psnr_per_100`` (the mean training-view PSNR of every 100 steps, to see when
-    a run went wrong) and, for SecureGS, the ``robust`` training, ``bit_margin`` and
-    ``hidden_finish`` it resolved."""
+    a run went wrong) and, for SecureGS, the ``robust`` training, ``bit_margin``, ``hidden_finish``
+    and ``finish_robust`` it resolved."""
     t0 = time.perf_counter()
     nonfinite_at, trace, window = [], [], []
     incomplete = 0

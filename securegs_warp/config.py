@@ -636,6 +636,15 @@ def _set(config, parts: list[str], value, where: str):
 RESUMABLE_CHANGES = ("secure.hidden_finish", "secure.finish_robust")
 
 
+def recorded_phase(secure: dict) -> dict:
+    """Field name -> value of each of RESUMABLE_CHANGES in a recorded ``secure`` section (of
+    config.json or a checkpoint's config), as the run trained it: a run recorded before
+    ``hidden_finish`` existed had no finishing phase, one recorded before ``finish_robust`` existed
+    trained its phase against the joint run's attacks."""
+    return {"hidden_finish": secure.get("hidden_finish") or 0.0,
+            "finish_robust": secure.get("finish_robust", secure.get("robust"))}
+
+
 def first_difference(a, b, where: str = "", ignore: tuple = ()) -> str | None:
     """The dotted path of the first field where two configs of the same type differ, or None;
     fields at the dotted paths ``ignore`` are not compared."""

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import RunConfig, SecureConfig, to_dict
+from ..config import RunConfig, SecureConfig, recorded_phase, to_dict
 from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
@@ -201,14 +201,10 @@ def hide_config(args, device, secrets: list[SecretOptions]) -> RunConfig:
     config = common.config_from_args(args, base, HIDE_DEFAULTS, device)
     run = RunFolder(args.out)
     if args.resume and run.config.is_file():
-        # A resumed run keeps its finishing phase's length and attacks unless the command asks for
-        # others. A run recorded before hidden_finish existed had no phase; one recorded before
-        # finish_robust existed trained its phase against the joint run's attacks.
-        recorded = run.read_config().get("secure") or {}
-        kept = {"hidden_finish": recorded.get("hidden_finish") or 0.0,
-                "finish_robust": recorded.get("finish_robust", recorded.get("robust"))}
+        # A resumed run keeps its finishing phase's length and attacks unless the command asks for others.
         given = common.given_fields(args, base)
-        kept = {name: value for name, value in kept.items() if f"secure.{name}" not in given}
+        kept = {name: value for name, value in recorded_phase(run.read_config().get("secure") or {}).items()
+                if f"secure.{name}" not in given}
         config = dataclasses.replace(config, secure=dataclasses.replace(config.secure, **kept))
     payload = SECRET_SEPARATOR.join(s.payload for s in secrets)
     specs = parse_secrets(payload)

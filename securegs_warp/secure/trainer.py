@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from .. import evaluation
-from ..config import BOX_FRAME_DEFAULTS, SecureConfig, TrainConfig
+from ..config import BOX_FRAME_DEFAULTS, SecureConfig, TrainConfig, recorded_phase
 from ..data import Camera, SceneData
 from ..kept import Kept
 from ..train.base import evaluated, frozen
@@ -435,11 +435,8 @@ class SecureTrainer(ScaffoldTrainer):
         if self.step_count > self.config.iterations:
             # The phase's learning rates, Adam state and running mean belong to its length and
             # attacks: once it has begun, they stay (config.RESUMABLE_CHANGES lets a run change
-            # them before). A checkpoint written before finish_robust existed trained its phase
-            # against the joint run's attacks.
-            secure = state["config"]["secure"]
-            for name, saved in (("hidden_finish", secure.get("hidden_finish")),
-                                ("finish_robust", secure.get("finish_robust", secure.get("robust")))):
+            # them before).
+            for name, saved in recorded_phase(state["config"]["secure"]).items():
                 if saved != getattr(self.secure, name):
                     raise ValueError(f"{path}: the run is {self.step_count - self.config.iterations} steps into a "
                                      f"finishing phase of {name} {saved}; resume it with that value "
