@@ -203,9 +203,9 @@ BIT_MARGIN = 1.0
 # finishing phase").
 FINISH_FRACTION = 0.25
 # What the finishing phase trains against where ``robust`` "auto" chose ROBUST_RECIPE: harder dropout
-# than the joint run's. The release is frozen in the phase, so the heads' redundancy costs the cover
-# nothing; with the averaged key it kept 20% random pruning within 1 dB where the joint run's recipe
-# lost more, for a few tenths of a dB unattacked (docs/results.md, "Harder dropout in the phase").
+# than the joint run's. The release is frozen in the phase, so the redundancy it teaches the private
+# heads costs the cover nothing, only some unattacked hidden fidelity (docs/results.md, "Harder
+# dropout in the phase", has the trade).
 FINISH_ROBUST_RECIPE = "prune-random:0.5+noise-feat:0.3"
 
 
