@@ -393,11 +393,10 @@ class SecureConfig:
                               ("feature_grad_until", "a fraction of the run")):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must lie in [0, 1] ({meaning}), got {getattr(self, name)}")
+        # Frozen: the one spelling of each recipe is set here, so that a recorded run and its
+        # resume compare equal however either wrote the numbers.
         for name in ("robust", "finish_robust"):
-            if getattr(self, name) not in (None, "auto"):
-                from .secure.robust import parse_robust  # the attacks module imports this one
-
-                parse_robust(getattr(self, name), name)
+            object.__setattr__(self, name, canonical_attacks(getattr(self, name), name))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -636,13 +635,25 @@ def _set(config, parts: list[str], value, where: str):
 RESUMABLE_CHANGES = ("secure.hidden_finish", "secure.finish_robust")
 
 
+def canonical_attacks(text: str | None, option: str) -> str | None:
+    """``text`` (attacks joined with +, the syntax of ``SecureConfig.robust``) with each attack
+    written as ``Attack.text`` writes it ("prune-random:0.50" -> "prune-random:0.5"), in its order
+    (the attacks draw their randomness in that order); None and "auto" are returned as they are. A
+    bad spec raises ValueError naming ``option``."""
+    if text in (None, "auto"):
+        return text
+    from .secure.robust import parse_robust  # the attacks module imports this one
+
+    return "+".join(attack.text for attack in parse_robust(text, option))
+
+
 def recorded_phase(secure: dict) -> dict:
     """Field name -> value of each of RESUMABLE_CHANGES in a recorded ``secure`` section (of
     config.json or a checkpoint's config), as the run trained it: a run recorded before
     ``hidden_finish`` existed had no finishing phase, one recorded before ``finish_robust`` existed
     trained its phase against the joint run's attacks."""
     return {"hidden_finish": secure.get("hidden_finish") or 0.0,
-            "finish_robust": secure.get("finish_robust", secure.get("robust"))}
+            "finish_robust": canonical_attacks(secure.get("finish_robust", secure.get("robust")), "finish_robust")}
 
 
 def first_difference(a, b, where: str = "", ignore: tuple = ()) -> str | None:

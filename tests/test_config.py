@@ -125,6 +125,26 @@ def test_robust_training_is_on_by_default_only_for_an_object_in_the_cover_mode()
         apply_overrides(secure, {"robust": "noise-offset:0.1"})
 
 
+def test_attack_recipes_have_one_spelling():
+    """Two spellings of one recipe are one config (a resumed run compares its recorded recipe with
+    the command's); the order stays, since the attacks draw their randomness in it."""
+    from securegs_warp.config import recorded_phase
+
+    given = apply_overrides(SecureConfig(), {"robust": "prune-random:0.30+noise-feat:.3",
+                                             "finish_robust": "prune-random:5e-1"})
+    assert (given.robust, given.finish_robust) == ("prune-random:0.3+noise-feat:0.3", "prune-random:0.5")
+    assert given == apply_overrides(SecureConfig(), {"robust": "prune-random:0.3+noise-feat:0.3",
+                                                     "finish_robust": "prune-random:0.5"})
+    assert apply_overrides(SecureConfig(), {"robust": "noise-feat:0.3+prune-random:0.3"}).robust == \
+        "noise-feat:0.3+prune-random:0.3"
+    # a run recorded before the one spelling, or before finish_robust existed
+    assert recorded_phase({"hidden_finish": 0.25, "finish_robust": "prune-random:0.50"})["finish_robust"] == \
+        "prune-random:0.5"
+    assert recorded_phase({"robust": "noise-feat:0.30"}) == {"hidden_finish": 0.0, "finish_robust": "noise-feat:0.3"}
+    with pytest.raises(ValueError, match="finish_robust"):
+        recorded_phase({"finish_robust": "prune-random:lots"})
+
+
 def test_hide_records_the_robust_training_and_margin_it_chose(tmp_path, capsys):
     """config.json holds the resolved choice, so that a later default cannot change a resumed run;
     a run recorded without robust training (as every run before it was the default) resumes with

@@ -28,7 +28,10 @@ def parse_robust(text: str, option: str = "robust") -> list[Attack]:
     """``A+B+...`` -> attacks; refuses unknown specs, repeats and attacks the hidden branch cannot
     train against, in one line naming ``option`` (the config field that holds ``text``) and the
     attacks it can."""
-    attacks = [Attack.parse(part) for part in text.split("+")]
+    try:
+        attacks = [Attack.parse(part) for part in text.split("+")]
+    except ValueError as error:
+        raise ValueError(f"{option}: {error}") from None
     for attack in attacks:
         if attack.name not in ROBUST_ATTACKS:
             why = " (the hidden branch does not read the public offsets)" if attack.name == "noise-offset" else ""
