@@ -67,6 +67,11 @@ class SecureTrainer(ScaffoldTrainer):
     ``model.secrets``), ``robust`` and ``finish_robust`` (the attacks the hidden branch trains
     against in the joint run and in the finishing phase, parsed) and ``finish_steps`` (the
     finishing phase's steps after ``config.iterations``; ``total_steps`` is the run's whole length).
+
+    A resumed run (``restore``) that has not begun its finishing phase takes this ``secure``'s
+    length and attacks for it, "auto" resolved as for a new run; ``securegs hide --resume`` keeps
+    the recorded ones unless the command names others. To keep them here, pass the values of
+    ``config.recorded_phase`` of the run's recorded ``secure`` section.
     """
 
     def __init__(self, scene: SceneData, config: TrainConfig, secure: SecureConfig, device="cpu"):
