@@ -122,7 +122,9 @@ class Attack:
 
     @property
     def text(self) -> str:
-        return ":".join([self.name, *(f"{a:g}" for a in self.args)])
+        """The spec as ATTACK_SYNTAX writes it, each number in its shortest form that reads back as
+        the same value (a config compares recipes by this text, and a run trains on what it reads)."""
+        return ":".join([self.name, *(f"{a:g}" if float(f"{a:g}") == a else repr(a) for a in self.args)])
 
     @property
     def changes_heads(self) -> bool:

@@ -266,13 +266,13 @@ class SecureConfig:
         this is the knob that trades hidden fidelity for training time (docs/results.md, "The hidden
         stride"). The private heads take one Adam step per hidden step; the RDO mode gathers ∇_hid
         on the steps that are multiples of both this and its own ``hidden_every``.
-    hidden_finish: after the joint run, the private heads alone train on the hidden loss (with robust
-        training's attacks) for this fraction of ``iterations`` more steps, while the release stays as
+    hidden_finish: after the joint run, the private heads alone train on the hidden loss (against
+        ``finish_robust``'s attacks) for this fraction of ``iterations`` more steps, while the release stays as
         the joint run left it: the cover, the anchor cloud and the bits do not change, only the key.
         During the joint run the anchor features the private heads read keep moving; the finishing
         phase fits the heads to the features that are published (docs/results.md, "The finishing
-        phase"). The key keeps the mean of the heads' weights over the phase's second half
-        (``secure.trainer.FINISH_AVERAGE_FROM``). 0: none; None: FINISH_FRACTION for a run that
+        phase"). The key keeps the mean of the heads' weights over the phase's steps after
+        ``secure.trainer.FINISH_AVERAGE_FROM`` of it. 0: none; None: FINISH_FRACTION for a run that
         hides an object in the cover mode, where it was measured, 0 otherwise
         (``finish_fraction``). Payloads without a hidden render (bits alone) have nothing to finish.
     finish_robust: the attacks the finishing phase trains against (``robust``'s syntax); None: none;

@@ -128,7 +128,7 @@ def test_robust_training_is_on_by_default_only_for_an_object_in_the_cover_mode()
 def test_attack_recipes_have_one_spelling():
     """Two spellings of one recipe are one config (a resumed run compares its recorded recipe with
     the command's); the order stays, since the attacks draw their randomness in it."""
-    from securegs_warp.config import recorded_phase
+    from securegs_warp.config import RESUMABLE_CHANGES, recorded_phase
 
     given = apply_overrides(SecureConfig(), {"robust": "prune-random:0.30+noise-feat:.3",
                                              "finish_robust": "prune-random:5e-1"})
@@ -143,6 +143,11 @@ def test_attack_recipes_have_one_spelling():
     assert recorded_phase({"robust": "noise-feat:0.30"}) == {"hidden_finish": 0.0, "finish_robust": "noise-feat:0.3"}
     with pytest.raises(ValueError, match="finish_robust"):
         recorded_phase({"finish_robust": "prune-random:lots"})
+    # every option a resumed run may change, and no other
+    assert {f"secure.{name}" for name in recorded_phase({})} == set(RESUMABLE_CHANGES)
+    # the short form only where it reads back as the same number
+    exact = apply_overrides(SecureConfig(), {"robust": "noise-feat:0.1234567", "finish_robust": "prune-random:0.9999999"})
+    assert (exact.robust, exact.finish_robust) == ("noise-feat:0.1234567", "prune-random:0.9999999")
 
 
 def test_hide_records_the_robust_training_and_margin_it_chose(tmp_path, capsys):

@@ -406,9 +406,12 @@ def test_cli_resume_keeps_or_changes_the_finishing_phase(tmp_path, capsys):
     assert json.loads((out / "log.jsonl").read_text().splitlines()[-1])["phase"] == "finish"
     capsys.readouterr()
     assert main(args + ["--resume", "--hidden-finish", "1"]) == 2
-    assert "finishing phase of hidden_finish 0.5" in capsys.readouterr().err
+    assert "finishing phase with hidden_finish 0.5 (--hidden-finish)" in capsys.readouterr().err
     assert main(args + ["--resume", "--finish-robust", "none"]) == 2
-    assert "finishing phase of finish_robust noise-feat:0.2" in capsys.readouterr().err
+    assert "finishing phase with finish_robust 'noise-feat:0.2' (--finish-robust)" in capsys.readouterr().err
+    assert (recorded(), recorded("finish_robust")) == (0.5, "noise-feat:0.2")
+    # left out, both are the run's own, not the defaults (which the phase begun would refuse)
+    assert main(args + ["--resume"]) == 0
     assert (recorded(), recorded("finish_robust")) == (0.5, "noise-feat:0.2")
 
 
@@ -572,9 +575,10 @@ def test_the_finishing_phase_trains_the_private_heads_alone_and_resumes(hidden_s
     longer.load_checkpoint(tmp_path / "joint.pt")
     assert (longer.step_count, longer.total_steps) == (4, 12)
     assert longer.step()["phase"] == "finish"
-    with pytest.raises(ValueError, match=r"2 steps into a finishing phase of hidden_finish 1\.0"):
-        SecureTrainer(hidden_scene, config, dataclasses.replace(secure, hidden_finish=2.0)).load_checkpoint(
-            tmp_path / "run.pt")
+    refused = SecureTrainer(hidden_scene, config, dataclasses.replace(secure, hidden_finish=2.0))
+    with pytest.raises(ValueError, match=r"2 steps into a finishing phase with hidden_finish 1\.0"):
+        refused.load_checkpoint(tmp_path / "run.pt")
+    assert refused.step_count == 0  # refused before anything of the checkpoint was loaded
     with pytest.raises(ValueError, match="hidden_offsets differs"):
         SecureTrainer(hidden_scene, config, dataclasses.replace(secure, hidden_offsets=3)).load_checkpoint(
             tmp_path / "run.pt")
@@ -638,12 +642,10 @@ def test_the_finishing_phase_keys_the_mean_of_its_late_weights_and_resumes_it(hi
         fold(step)
 
     trainer._average_private = recording
-    generator = None
     while trainer.step_count < trainer.total_steps:
         trainer.step()
         if trainer.step_count == trainer.total_steps - 1:
             trainer.save_checkpoint(tmp_path / "late.pt")
-            generator = trainer.generator.get_state()
     window = [step for step in seen if step > config.iterations + FINISH_AVERAGE_FROM * trainer.finish_steps]
     assert window == [7, 8]
     mean = [torch.stack([seen[step][i] for step in window]).mean(0) for i in range(len(seen[8]))]
@@ -653,7 +655,6 @@ def test_the_finishing_phase_keys_the_mean_of_its_late_weights_and_resumes_it(hi
 
     resumed = SecureTrainer(hidden_scene, config, secure)
     resumed.load_checkpoint(tmp_path / "late.pt")
-    resumed.generator.set_state(generator)
     while resumed.step_count < resumed.total_steps:
         resumed.step()
     assert all(torch.allclose(a, b, atol=1e-7) for a, b in zip(final, weights(resumed)))

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import RunConfig, SecureConfig, recorded_phase, to_dict
+from ..config import FINISH_ROBUST_RECIPE, RunConfig, SecureConfig, recorded_phase, to_dict
 from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
@@ -71,7 +71,7 @@ SECURE_FLAGS = (
                                                 "the cover mode, 0 otherwise); with --resume, a run that has "
                                                 "not begun its phase takes this one"),
     ("--finish-robust", "secure.finish_robust", "attacks the finishing phase trains against, joined with + (as "
-                                                "--robust; none: none; auto: prune-random:0.5+noise-feat:0.3 where "
+                                                f"--robust; none: none; auto: {FINISH_ROBUST_RECIPE} where "
                                                 "--robust auto chose its recipe, --robust's attacks otherwise); with "
                                                 "--resume, a run that has not begun its phase takes these"),
     ("--hidden-weight", "secure.hidden_weight", "λ of ℓ_ori + λ·ℓ_hid (None: the paper's 10 for objects, 0.1 for an "

@@ -89,8 +89,8 @@ class SecureTrainer(ScaffoldTrainer):
         kinds = [p.spec.kind for p in self.payloads]
         strategy = dataclasses.replace(secure.strategy.scaled_to(config.iterations), mode=secure.strategy_mode(kinds))
         self.secure = secure = secure.resolved(kinds, strategy.mode)
-        self.robust = parse_robust(secure.robust) if secure.robust else []
-        self.finish_robust = parse_robust(secure.finish_robust) if secure.finish_robust else []
+        self.robust = parse_robust(secure.robust, "robust") if secure.robust else []
+        self.finish_robust = parse_robust(secure.finish_robust, "finish_robust") if secure.finish_robust else []
         strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
                              and any(p.spec.kind in ("object", "image") for p in self.payloads))
         self.strategy = strategy  # the private heads, built with the model, read its mode
@@ -413,7 +413,24 @@ class SecureTrainer(ScaffoldTrainer):
                 "finish_optimizer": None if self._finish_optimizer is None else self._finish_optimizer.state_dict(),
                 "finish_average": self._finish_average}
 
+    def _check_phase(self, state: dict, path) -> None:
+        """Refuse a checkpoint inside its finishing phase whose phase length or attacks differ from
+        this run's: the phase's learning rates, Adam state and running mean belong to them, so once
+        it has begun they stay (config.RESUMABLE_CHANGES lets a run change them before). A
+        checkpoint without a readable config is left to the base class's check."""
+        config = state.get("config")
+        into = int(state.get("step", 0)) - self.config.iterations
+        if into <= 0 or not isinstance(config, dict) or not isinstance(config.get("secure"), dict):
+            return
+        for name, saved in recorded_phase(config["secure"]).items():
+            mine = getattr(self.secure, name)
+            if saved != mine:
+                raise ValueError(f"{path}: the run is {into} steps into a finishing phase with {name} {saved!r} "
+                                 f"(--{name.replace('_', '-')}); resume it with that value, not {mine!r}")
+
     def restore(self, state: dict, path) -> None:
+        # Before anything is loaded, so that a refused resume leaves this trainer as it was.
+        self._check_phase(state, path)
         super().restore(state, path)
         if not isinstance(state.get("private"), list) or len(state["private"]) != len(self.payloads):
             raise ValueError(f"{path}: the checkpoint holds another number of secrets (or was written by an earlier "
@@ -437,15 +454,6 @@ class SecureTrainer(ScaffoldTrainer):
                 p.bits = message.to(self.device)
                 private.set_message(message_string(p.bits), seed, private.bits.cell)
                 private.to(self.device)
-        if self.step_count > self.config.iterations:
-            # The phase's learning rates, Adam state and running mean belong to its length and
-            # attacks: once it has begun, they stay (config.RESUMABLE_CHANGES lets a run change
-            # them before).
-            for name, saved in recorded_phase(state["config"]["secure"]).items():
-                if saved != getattr(self.secure, name):
-                    raise ValueError(f"{path}: the run is {self.step_count - self.config.iterations} steps into a "
-                                     f"finishing phase of {name} {saved}; resume it with that value "
-                                     f"(not {getattr(self.secure, name)})")
         self._finish_optimizer = None
         if state.get("finish_optimizer") is not None:
             self._finishing_optimizer().load_state_dict(state["finish_optimizer"])
