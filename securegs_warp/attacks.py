@@ -102,22 +102,24 @@ class Attack:
     args: tuple = ()
 
     @classmethod
-    def parse(cls, text: str) -> "Attack":
-        """``NAME[:ARG...]`` -> Attack; anything else raises a one-line ValueError listing the valid specs."""
+    def parse(cls, text: str, names=None) -> "Attack":
+        """``NAME[:ARG...]`` -> Attack; anything else raises a one-line ValueError listing the valid
+        specs. names: the attack names accepted here (default: all), which the message lists."""
+        valid = [s for s in ATTACK_SYNTAX if names is None or s.split(":")[0] in names]
         name, *raw = text.strip().split(":")
-        if name not in _ARGUMENTS:
-            raise ValueError(f"unknown attack {text!r}; valid: {', '.join(ATTACK_SYNTAX)}")
+        if name not in _ARGUMENTS or (names is not None and name not in names):
+            raise ValueError(f"unknown attack {text!r}; valid: {', '.join(valid)}")
         parsers = _ARGUMENTS[name]
         syntax = ATTACK_SYNTAX[list(_ARGUMENTS).index(name)]
         if len(raw) != len(parsers):
-            raise ValueError(f"attack {text!r} must be written {syntax}; valid: {', '.join(ATTACK_SYNTAX)}")
+            raise ValueError(f"attack {text!r} must be written {syntax}; valid: {', '.join(valid)}")
         args = []
         for parse, value in zip(parsers, raw):
             try:
                 args.append(parse(value))
             except ValueError:
                 raise ValueError(f"attack {text!r}: {value!r} is not {_MEANING[parse]} ({syntax}); valid: "
-                                 f"{', '.join(ATTACK_SYNTAX)}") from None
+                                 f"{', '.join(valid)}") from None
         return cls(name, tuple(args))
 
     @property

@@ -180,6 +180,11 @@ def test_robust_option_accepted_and_refused():
                      ("prune-random:0.3+prune-random:0.1", "twice"), ("noise:0.1", "valid:")):
         with pytest.raises(ValueError, match=why):
             SecureConfig(robust=bad)
+    # a mistyped or malformed attack is answered with the attacks robust training takes, not all
+    for bad in ("noise:0.1", "prune-random:lots"):
+        with pytest.raises(ValueError, match="^finish_robust: .*valid: prune-random:F") as refused:
+            SecureConfig(finish_robust=bad)
+        assert "sor" not in str(refused.value) and "half" not in str(refused.value)
 
 
 def test_hide_refuses_a_bad_robust_option_in_one_line(tmp_path, capsys):

@@ -17,26 +17,29 @@ import dataclasses
 
 import torch
 
-from ..attacks import Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
+from ..attacks import ATTACK_SYNTAX, Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
 from ..model.anchors import AnchorSizes
 
 ROBUST_ATTACKS = ("prune-random", "prune-opacity", "noise-xyz", "noise-feat", "quantize")
 QUANTIZE_MAX_BITS = 16
+ATTACK_NAMES = tuple(syntax.split(":")[0] for syntax in ATTACK_SYNTAX)
 
 
 def parse_robust(text: str, option: str = "robust") -> list[Attack]:
     """``A+B+...`` -> attacks; refuses unknown specs, repeats and attacks the hidden branch cannot
     train against, in one line naming ``option`` (the config field that holds ``text``) and the
     attacks it can."""
-    try:
-        attacks = [Attack.parse(part) for part in text.split("+")]
-    except ValueError as error:
-        raise ValueError(f"{option}: {error}") from None
-    for attack in attacks:
-        if attack.name not in ROBUST_ATTACKS:
-            why = " (the hidden branch does not read the public offsets)" if attack.name == "noise-offset" else ""
-            raise ValueError(f"{option}: {attack.text} cannot be trained against{why}; use "
+    attacks = []
+    for part in text.split("+"):
+        name = part.strip().split(":")[0]
+        if name in ATTACK_NAMES and name not in ROBUST_ATTACKS:
+            why = " (the hidden branch does not read the public offsets)" if name == "noise-offset" else ""
+            raise ValueError(f"{option}: {part.strip()} cannot be trained against{why}; use "
                              f"{', '.join(ROBUST_ATTACKS)} joined with +")
+        try:
+            attacks.append(Attack.parse(part, ROBUST_ATTACKS))
+        except ValueError as error:
+            raise ValueError(f"{option}: {error} (joined with +)") from None
     names = [a.name for a in attacks]
     if len(set(names)) != len(names):
         raise ValueError(f"{option} {text!r} names an attack twice")
