@@ -50,6 +50,7 @@ from .scaffold_model import ScaffoldModel, decode_all
 
 ATTACK_SYNTAX = ("prune-random:F", "prune-opacity:F", "noise-xyz:S", "noise-feat:S", "noise-offset:S", "sor:K:STD",
                  "quantize:B", "half", "purify:F", "finetune:N", "export-roundtrip")
+ATTACK_NAMES = tuple(syntax.split(":")[0] for syntax in ATTACK_SYNTAX)
 EXPORT_NOT_APPLICABLE = ("a standard 3DGS PLY holds decoded Gaussians, not anchors, features or MLPs: a Scaffold-GS "
                          "release cannot be read back from one")
 FINETUNE_NEEDS_SCENE = ("finetune needs the cover's training views: give --scene (and the scene options it was "
@@ -105,12 +106,12 @@ class Attack:
     def parse(cls, text: str, names=None) -> "Attack":
         """``NAME[:ARG...]`` -> Attack; anything else raises a one-line ValueError listing the valid
         specs. names: the attack names accepted here (default: all), which the message lists."""
-        valid = [s for s in ATTACK_SYNTAX if names is None or s.split(":")[0] in names]
+        valid = [s for s, n in zip(ATTACK_SYNTAX, ATTACK_NAMES) if names is None or n in names]
         name, *raw = text.strip().split(":")
         if name not in _ARGUMENTS or (names is not None and name not in names):
             raise ValueError(f"unknown attack {text!r}; valid: {', '.join(valid)}")
         parsers = _ARGUMENTS[name]
-        syntax = ATTACK_SYNTAX[list(_ARGUMENTS).index(name)]
+        syntax = ATTACK_SYNTAX[ATTACK_NAMES.index(name)]
         if len(raw) != len(parsers):
             raise ValueError(f"attack {text!r} must be written {syntax}; valid: {', '.join(valid)}")
         args = []

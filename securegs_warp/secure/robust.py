@@ -17,12 +17,11 @@ import dataclasses
 
 import torch
 
-from ..attacks import ATTACK_SYNTAX, Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
+from ..attacks import ATTACK_NAMES, Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
 from ..model.anchors import AnchorSizes
 
 ROBUST_ATTACKS = ("prune-random", "prune-opacity", "noise-xyz", "noise-feat", "quantize")
 QUANTIZE_MAX_BITS = 16
-ATTACK_NAMES = tuple(syntax.split(":")[0] for syntax in ATTACK_SYNTAX)
 
 
 def parse_robust(text: str, option: str = "robust") -> list[Attack]:
