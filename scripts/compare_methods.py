@@ -6,6 +6,11 @@ Writes compare_methods.md / .csv / .json and compare_methods.png into --out.
     python scripts/compare_methods.py --preset gpu1080 --out $OUT        # 1920×1080 on one GPU
     python scripts/compare_methods.py --preset cpu --payload object      # 3D object: geometric leakage
 
+The methods (``--methods``): scaffold and 3dgs (the covers, nothing hidden), securegs (the paper's
+SecureGS, with its RDO), securegs_cover (SecureGS in the cover mode, this project's default for an
+object, with its robust training and finishing phase; objects only), steganerf (3DGS + StegaNeRF:
+images only, after 3dgs, whose scene it fine-tunes) and gs_hider.
+
 ``--payload image`` hides the builtin emblem (SecureGS at training view 0, as the paper's single-image
 hiding; StegaNeRF in every view's render); ``--payload object`` hides the scene's hidden object
 (StegaNeRF cannot: it decodes 2D images). Options after the preset override it.
@@ -18,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from securegs_warp.baselines.comparison import DEFAULT_ATTACKS, PAYLOADS, make_setup, plot, run_all, write_report
+from securegs_warp.baselines.comparison import DEFAULT_ATTACKS, METHODS, PAYLOADS, make_setup, plot, run_all, write_report
 from securegs_warp.cli.common import quiet_warp
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.rasterizer import RasterOptions
@@ -42,7 +47,8 @@ def main():
     ap.add_argument("--payload", choices=PAYLOADS, default="image")
     ap.add_argument("--hide", default="mug", help="the synthetic scene's hidden object (object payload)")
     ap.add_argument("--methods", default="scaffold,securegs,3dgs,steganerf,gs_hider",
-                    help="comma-separated, in order (steganerf after 3dgs: it fine-tunes that cover)")
+                    help=f"comma-separated, in order, of {', '.join(METHODS)} (steganerf after 3dgs: it "
+                         "fine-tunes that cover)")
     ap.add_argument("--attacks", default=",".join(DEFAULT_ATTACKS), help="attack specs, comma-separated ('' for none)")
     ap.add_argument("--seed", type=int, default=0, help="training seed of every method (the scene stays the same)")
     ap.add_argument("--steganerf-tune", choices=("color", "dc", "all"), default="color",

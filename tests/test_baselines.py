@@ -192,3 +192,32 @@ def test_comparison_runs_and_reports(scene, tmp_path):
         make_setup(scene, "image", 8, 4, CPU_RASTER, torch.device("cpu"), attacks=("melt:1",))
     with pytest.raises(ValueError, match="tune must be"):
         make_setup(scene, "image", 8, 4, CPU_RASTER, torch.device("cpu"), steganerf={"tune": "geometry"})
+
+
+def test_comparison_runs_both_securegs_modes(scene):
+    setup = make_setup(scene, "object", iterations=8, finetune=4, raster=CPU_RASTER, device=torch.device("cpu"),
+                       attacks=("prune-random:0.1",), log=lambda line: None)
+    rows = run_all(setup, ("scaffold", "securegs", "securegs_cover"))
+    assert [r["method"] for r in rows] == ["Scaffold-GS", "SecureGS", "SecureGS cover mode"]
+    for row in rows[1:]:
+        assert row["psnr_hidden"] is not None and set(row["hidden_psnr_after"]) == {"prune-random:0.1"}
+        # leakage against the Scaffold-GS row: anchors over anchors
+        assert row["density_ratio"] is None or row["density_ratio"] >= 0.0
+        assert "coverage" in row
+    # the cover mode brings this project's default for an object: the finishing phase after the joint run
+    assert "finishing steps" in rows[2]["note"] and "finishing steps" not in rows[1]["note"]
+    image = make_setup(scene, "image", iterations=8, finetune=4, raster=CPU_RASTER, device=torch.device("cpu"),
+                       attacks=(), log=lambda line: None)
+    row, = run_all(image, ("securegs_cover",))  # nothing to train: the cover mode hides objects
+    assert row.get("psnr_hidden") is None and "hides 3D objects" in row["note"]
+
+
+def test_comparison_refuses_bad_method_lists_before_training(scene):
+    setup = make_setup(scene, "image", iterations=8, finetune=4, raster=CPU_RASTER, device=torch.device("cpu"),
+                       attacks=(), log=lambda line: None)
+    trained = []
+    with pytest.raises(ValueError, match="unknown method 'securegs_rdo'.*securegs_cover"):
+        run_all(setup, ("scaffold", "securegs_rdo"), on_row=trained.append)
+    with pytest.raises(ValueError, match="list 3dgs before it"):
+        run_all(setup, ("scaffold", "steganerf", "3dgs"), on_row=trained.append)
+    assert trained == []

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from .. import evaluation
-from ..attacks import AttackContext, apply_attacks, parse_attacks
+from ..attacks import AttackContext, parse_attacks
 from ..compare import release_mb
 from ..config import SecureConfig, StegaNeRFConfig, TrainConfig
 from ..gaussians.attacks import attack_gaussians
@@ -100,6 +100,11 @@ class Setup:
         return on_step
 
     @property
+    def parsed_attacks(self) -> list:
+        """``attacks`` as ``Attack`` objects; none when the comparison scores no attack."""
+        return parse_attacks(self.attacks) if self.attacks else []
+
+    @property
     def background(self):
         bg = self.scene.background
         return None if bg is None else torch.tensor(bg, dtype=torch.float32, device=self.device)
@@ -112,7 +117,8 @@ def make_setup(scene, payload: str, iterations: int, finetune: int, raster, devi
     before any training."""
     if payload not in PAYLOADS:
         raise ValueError(f"payload must be one of {', '.join(PAYLOADS)}, got {payload!r}")
-    parse_attacks(attacks)  # a bad spec fails before any training
+    if attacks:
+        parse_attacks(attacks)  # a bad spec fails before any training
     radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0))) if scene.hidden_points is not None \
         else 0.0
     return Setup(scene, payload, TrainConfig(iterations=iterations, seed=seed, raster=raster),
@@ -180,7 +186,7 @@ def run_steganerf(setup: Setup, cover: GaussianTrainer) -> tuple[dict, np.ndarra
     after = {}
     generator = torch.Generator().manual_seed(0)
     original = stega.model
-    for attack in parse_attacks(setup.attacks):
+    for attack in setup.parsed_attacks:
         stega.model = copy.deepcopy(original)
         report = attack_gaussians(stega.model, attack, generator)
         after[attack.text] = _hidden_psnr_stega(stega) if report["applicable"] else None
@@ -209,18 +215,28 @@ def _hidden_psnr_stega(stega: StegaNeRF) -> float:
                                     with_lpips=False)["psnr"]
 
 
-def run_securegs(setup: Setup) -> tuple[dict, np.ndarray]:
+# SecureGS's density modes in the comparison, by method name: the paper's RDO, and the cover mode that this
+# project uses by default for an object (its anchors do not draw the object: docs/results.md, "Geometric
+# security"), with the robust training and finishing phase that default brings.
+SECUREGS_MODES = {"securegs": ("rdo", "SecureGS"), "securegs_cover": ("cover", "SecureGS cover mode")}
+METHODS = ("scaffold", *SECUREGS_MODES, "3dgs", "steganerf", "gs_hider")
+
+
+def run_securegs(setup: Setup, method: str = "securegs") -> tuple[dict, np.ndarray | None]:
+    mode, label = SECUREGS_MODES[method]
+    if mode == "cover" and setup.payload != "object":
+        return {"method": label, "note": "the cover mode hides 3D objects; an image is hidden with the paper's "
+                                         "RDO (the SecureGS row)"}, None
     payload = "image:builtin@0" if setup.payload == "image" else "object"
-    # The paper's SecureGS (its RDO), whatever this project's default for an object.
-    secure = SecureConfig(payload=payload, strategy=RegionAwareStrategy(mode="rdo"))
+    secure = SecureConfig(payload=payload, strategy=RegionAwareStrategy(mode=mode))
     trainer = SecureTrainer(setup.scene, setup.train, secure, device=setup.device)
-    _train(trainer, "SecureGS", setup)
+    _train(trainer, label, setup)
     ev, hid = trainer.evaluate(), trainer.evaluate_hidden()
     after = {}
     ctx = AttackContext(setup.scene.test or setup.scene.train, setup.train.raster, setup.background,
                         torch.Generator().manual_seed(0), setup.scene, TrainConfig())
     original = trainer.model
-    for attack in parse_attacks(setup.attacks):
+    for attack in setup.parsed_attacks:
         attacked, reports = attacked_copy(original, [attack], ctx)
         trainer.model = attacked
         try:
@@ -228,18 +244,25 @@ def run_securegs(setup: Setup) -> tuple[dict, np.ndarray]:
         finally:
             trainer.model = original
     where = "training view 0 (the paper's single-image hiding)" if setup.payload == "image" else "every held-out view"
-    return ({"method": "SecureGS", "psnr_public": ev["psnr"], "ssim_public": ev["ssim"], "fps_public": ev["fps"],
+    phase = f"; {trainer.finish_steps} finishing steps after the joint run" if trainer.finish_steps else ""
+    return ({"method": label, "psnr_public": ev["psnr"], "ssim_public": ev["ssim"], "fps_public": ev["fps"],
              "psnr_hidden": hid.get("psnr_hidden"), "ssim_hidden": hid.get("ssim_hidden"),
              "fps_hidden": hid.get("fps_hidden"), "release_mb": release_mb(trainer.model),
              "release_format": "Scaffold-GS (anchor PLY + MLPs); key: private MLPs",
              "primitives": f"{ev['anchors']} anchors", "train_seconds": trainer.train_seconds,
-             "hidden_psnr_after": after, "note": f"hidden scored at {where}"},
+             "hidden_psnr_after": after, "note": f"hidden scored at {where}{phase}"},
             trainer.model.anchors.xyz.detach().cpu().numpy())
 
 
 def run_all(setup: Setup, methods=("scaffold", "securegs", "3dgs", "steganerf", "gs_hider"), on_row=None) -> list[dict]:
-    """Run the methods in order; returns one row per method (``on_row(rows)`` after each). The
-    density ratio of each anchor model is over Scaffold-GS's, of each explicit model over 3DGS's."""
+    """Run the methods (names of METHODS) in order; returns one row per method (``on_row(rows)`` after
+    each). The density ratio of each anchor model is over Scaffold-GS's, of each explicit model over
+    3DGS's. An unknown name, or steganerf without 3dgs before it, raises ValueError before any training."""
+    unknown = [name for name in methods if name not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method {unknown[0]!r}: the methods are {', '.join(METHODS)}")
+    if "steganerf" in methods and "3dgs" not in methods[:list(methods).index("steganerf")]:
+        raise ValueError("steganerf fine-tunes the 3DGS cover: list 3dgs before it")
     rows, leak, cover = [], {}, None
     for name in methods:
         setup.log(f"{name} ...")
@@ -249,15 +272,11 @@ def run_all(setup: Setup, methods=("scaffold", "securegs", "3dgs", "steganerf", 
         elif name == "3dgs":
             row, xyz, cover = run_3dgs(setup)
         elif name == "steganerf":
-            if cover is None:
-                raise ValueError("steganerf fine-tunes the 3DGS cover: list 3dgs before it")
             row, xyz = run_steganerf(setup, cover)
-        elif name == "securegs":
-            row, xyz = run_securegs(setup)
-        elif name == "gs_hider":
-            row, xyz = gs_hider_row(setup)
+        elif name in SECUREGS_MODES:
+            row, xyz = run_securegs(setup, name)
         else:
-            raise ValueError(f"unknown method {name!r}")
+            row, xyz = gs_hider_row(setup)
         row = {"payload": setup.payload, **row, "wall_seconds": round(time.perf_counter() - t0, 1)}
         e = _leakage(setup, xyz)
         if e is not None:

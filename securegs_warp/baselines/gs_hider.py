@@ -43,7 +43,6 @@ from safetensors.torch import save as safetensors_bytes
 from torch import nn
 
 from .. import evaluation
-from ..attacks import parse_attacks
 from ..config import GSHiderConfig, TrainConfig
 from ..data import Camera, SceneData
 from ..gaussians import GaussianModel
@@ -418,7 +417,7 @@ def compare_row(setup) -> tuple[dict, np.ndarray]:
         public, _ = model.save(tmp)
         release_mb = release_bytes(public) / 1e6
     after, generator = {}, torch.Generator().manual_seed(0)
-    for attack in parse_attacks(setup.attacks):
+    for attack in setup.parsed_attacks:
         attacked = copy.deepcopy(model)
         report = attack_gaussians(attacked, attack, generator)
         after[attack.text] = (evaluate_gs_hider(attacked, setup.scene, payload, train.raster, timing_repeats=1)
