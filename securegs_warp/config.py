@@ -193,12 +193,9 @@ class StegaNeRFConfig:
 # (docs/results.md, "Geometric security", measures them).
 BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1}
 # What ``robust`` "auto" trains a hidden object in the cover mode against, and the bit margin it
-# was measured with: the payload then survives random pruning, feature noise and purify
-# (docs/results.md, "Robust training by default"), and position noise and quantisation, which
-# without noise-xyz cost the hidden object as much as the cover; noise-xyz moves the serving set
-# every step, so on CUDA the hidden branch is not replayed from graphs (docs/results.md, "Anchor
-# positions at 1080p").
-ROBUST_RECIPE = "prune-random:0.3+noise-feat:0.3+noise-xyz:0.01"
+# was measured with: the payload then survives random pruning, feature noise and purify for no
+# training time (docs/results.md, "Robust training by default").
+ROBUST_RECIPE = "prune-random:0.3+noise-feat:0.3"
 ROBUST_BIT_MARGIN = 0.25
 BIT_MARGIN = 1.0
 # The finishing phase (a fraction of the iterations) a hidden object in the cover mode gets by default:
@@ -209,7 +206,7 @@ FINISH_FRACTION = 0.25
 # than the joint run's. The release is frozen in the phase, so the redundancy it teaches the private
 # heads costs the cover nothing, only some unattacked hidden fidelity (docs/results.md, "Harder
 # dropout in the phase", has the trade).
-FINISH_ROBUST_RECIPE = "prune-random:0.5+noise-feat:0.3+noise-xyz:0.01"
+FINISH_ROBUST_RECIPE = "prune-random:0.5+noise-feat:0.3"
 
 
 @dataclasses.dataclass(frozen=True)

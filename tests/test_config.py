@@ -155,7 +155,7 @@ def test_hide_records_the_robust_training_and_margin_it_chose(tmp_path, capsys):
     a run recorded without robust training (as every run before it was the default) resumes with
     --robust none, and without it is refused, naming the field."""
     runs = {}
-    for payload, robust, margin, extra in (("object", "prune-random:0.3+noise-feat:0.3+noise-xyz:0.01", 0.25, []),
+    for payload, robust, margin, extra in (("object", "prune-random:0.3+noise-feat:0.3", 0.25, []),
                                            ("object", None, 1.0, ["--robust", "none"]),
                                            ("bits:8", None, 1.0, [])):
         out = tmp_path / f"run_{payload}_{len(extra)}"

@@ -95,7 +95,7 @@ SECURE_FLAGS = (
     ("--robust", "secure.robust", "attacks the hidden payload trains against, joined with + (prune-random:F, "
                                   "noise-xyz:S, noise-feat:S, quantize:B; strengths drawn each step up to these); the "
                                   "cover's render is untouched; none: no robust training; auto: "
-                                  "prune-random:0.3+noise-feat:0.3+noise-xyz:0.01 for an object (and bits) in the cover mode, none "
+                                  "prune-random:0.3+noise-feat:0.3 for an object (and bits) in the cover mode, none "
                                   "otherwise"),
     ("--hidden-tau-scale", "secure.strategy.hidden_tau_scale",
      "RDO: anchors serving only the hidden payload grow at τ_fix times this (larger shows less of a hidden "
