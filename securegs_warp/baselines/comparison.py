@@ -258,10 +258,11 @@ def run_all(setup: Setup, methods=("scaffold", "securegs", "3dgs", "steganerf", 
     """Run the methods (names of METHODS) in order; returns one row per method (``on_row(rows)`` after
     each). The density ratio of each anchor model is over Scaffold-GS's, of each explicit model over
     3DGS's. An unknown name, or steganerf without 3dgs before it, raises ValueError before any training."""
+    methods = list(methods)
     unknown = [name for name in methods if name not in METHODS]
     if unknown:
         raise ValueError(f"unknown method {unknown[0]!r}: the methods are {', '.join(METHODS)}")
-    if "steganerf" in methods and "3dgs" not in methods[:list(methods).index("steganerf")]:
+    if "steganerf" in methods and "3dgs" not in methods[:methods.index("steganerf")]:
         raise ValueError("steganerf fine-tunes the 3DGS cover: list 3dgs before it")
     rows, leak, cover = [], {}, None
     for name in methods:

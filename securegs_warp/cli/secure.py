@@ -19,13 +19,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import FINISH_ROBUST_RECIPE, RunConfig, SecureConfig, recorded_phase, to_dict
+from ..config import FINISH_ROBUST_RECIPE, ROBUST_RECIPE, RunConfig, SecureConfig, recorded_phase, to_dict
 from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
 from ..secure.container import PUBLIC_DIR, KeyFile, KeyViews, default_key_path, open_container, save_container
 from ..secure.payload import SECRET_SEPARATOR, describe_secrets, parse_secrets
+from ..secure.robust import ROBUST_SYNTAX
 from ..secure.trainer import secret_suffix
 from ..secure.security import exposure
 from . import common
@@ -92,10 +93,10 @@ SECURE_FLAGS = (
                                           "object's box (everywhere with --mode global)"),
     ("--hidden-every", "secure.strategy.hidden_every", "RDO: accumulate ∇_hid every N steps (larger grows fewer "
                                                        "hidden-only anchors)"),
-    ("--robust", "secure.robust", "attacks the hidden payload trains against, joined with + (prune-random:F, "
-                                  "noise-xyz:S, noise-feat:S, quantize:B; strengths drawn each step up to these); the "
+    ("--robust", "secure.robust", f"attacks the hidden payload trains against, joined with + ({ROBUST_SYNTAX}; "
+                                  "strengths drawn each step up to these); the "
                                   "cover's render is untouched; none: no robust training; auto: "
-                                  "prune-random:0.3+noise-feat:0.3 for an object (and bits) in the cover mode, none "
+                                  f"{ROBUST_RECIPE} for an object (and bits) in the cover mode, none "
                                   "otherwise"),
     ("--hidden-tau-scale", "secure.strategy.hidden_tau_scale",
      "RDO: anchors serving only the hidden payload grow at τ_fix times this (larger shows less of a hidden "

@@ -17,10 +17,12 @@ import dataclasses
 
 import torch
 
-from ..attacks import ATTACK_NAMES, Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
+from ..attacks import ATTACK_NAMES, ATTACK_SYNTAX, Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
 from ..model.anchors import AnchorSizes
 
 ROBUST_ATTACKS = ("prune-random", "prune-opacity", "noise-xyz", "noise-feat", "quantize")
+# How each is written, for messages and help: ATTACK_SYNTAX restricted to them.
+ROBUST_SYNTAX = ", ".join(s for s, n in zip(ATTACK_SYNTAX, ATTACK_NAMES) if n in ROBUST_ATTACKS)
 QUANTIZE_MAX_BITS = 16
 
 
