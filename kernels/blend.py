@@ -1,7 +1,7 @@
 """Front-to-back alpha blending over each tile's depth-sorted Gaussians, and its adjoint.
 
 Launch layout: ``dim=(n_tiles, tile_size²)``, ``block_dim=tile_size²``: one thread per pixel of a
-tile. On CUDA a block is a tile: each batch of Gaussians is gathered once into shared memory
+tile (the backward optionally walks two pixels a thread: ``backward_pixels``). On CUDA a block is a tile: each batch of Gaussians is gathered once into shared memory
 (``tile_load_indexed``) and read by every pixel, and the block stops when all its pixels are done.
 On the CPU ``block_dim`` resolves to 1: each thread is its own block, gathers the batch itself and
 the block-wide votes and sums reduce over one thread — the same code, correct for both.
@@ -174,6 +174,15 @@ def pack_kernel(channels: int, color_storage: str):
     return wp.kernel(pack, enable_backward=False, module="unique")
 
 
+# Pixels a thread of the backward blending kernel may walk (``blend_kernels``' backward_pixels).
+BACKWARD_PIXELS = (1, 2, 4)
+
+
+def backward_threads(tile_size: int, pixels: int) -> int:
+    """Threads per tile of the backward blending kernel when each walks ``pixels`` pixels."""
+    return tile_size * tile_size // pixels
+
+
 # On the CPU (one thread per block, direct reads) the batch only paces the walk over the list.
 CPU_BATCH = 32
 
@@ -197,7 +206,7 @@ def batch_size(channels: int, block: int, with_depth: bool, color_storage: str, 
 @functools.lru_cache(maxsize=None)
 def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, cooperative: bool,
                   color_storage: str, fast_math: bool, warp_walk: bool = False, max_registers: int = 0, *,
-                  packed: bool):
+                  packed: bool, backward_pixels: int = 1):
     """(forward, backward) kernels specialised for C channels, one tile size, depth on/off and
     ``batch`` Gaussians per step of the list walk (see ``batch_size``; ``CPU_BATCH`` on the CPU).
 
@@ -218,9 +227,16 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
     (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
     not packed) and read the per-field arrays only for what the record lacks.
+    ``backward_pixels``: pixels each thread of the backward walks (1, 2 or 4; launched with
+    tile_size² / backward_pixels threads a tile, see ``backward_threads``). A thread reads each
+    Gaussian once for its pixels and sums their gradients before the warp's shuffles, so P pixels a
+    thread divide the shared-memory reads, shuffles and atomics per pixel by P, for more registers.
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
+    if backward_pixels not in BACKWARD_PIXELS or backward_threads(tile_size, backward_pixels) < 32:
+        raise ValueError(f"backward_pixels must be one of {BACKWARD_PIXELS} with at least 32 threads a tile, "
+                         f"got {backward_pixels} for tiles of {tile_size}")
     ColorT = COLOR_STORAGES[color_storage]
     C = channels
     TS = tile_size
@@ -235,6 +251,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     REC_COLOR = packed and colors_in_record(color_storage)
     ColorVec = wp.types.vector(length=C, dtype=wp.float32)
     GradVec = wp.types.vector(length=NG, dtype=wp.float32)
+    PX = backward_pixels
+    PixVec = wp.types.vector(length=PX, dtype=wp.float32)
+    PixInt = wp.types.vector(length=PX, dtype=wp.int32)
+    PixColor = wp.types.vector(length=PX * C, dtype=wp.float32)
 
     @wp.func
     def gather_records(sorted_ids: wp.array(dtype=wp.int32), records: wp.array2d(dtype=wp.vec4), b0: int,
@@ -393,47 +413,58 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         v_depths: wp.array(dtype=float),
         v_background: wp.array(dtype=float),
     ):
+        # Thread ``lane`` walks the PX pixels of column lane % TS in rows PX·(lane // TS) + p of its
+        # tile, so a warp's pixels stay a compact band of whole rows (PX = 1: one pixel a thread).
         tile, lane = wp.tid()
         ty = tile // tiles_x
         px = (tile - ty * tiles_x) * TS + lane % TS
-        py = ty * TS + lane // TS
-        inside = px < width and py < height
+        row0 = ty * TS + (lane // TS) * PX
         fx = float(px) + 0.5
-        fy = float(py) + 0.5
         start = ranges[tile, 0]
         leader = lane % wp.block_dim() == 0
 
-        t_final = float(1.0)
-        last = int(-1)
-        v_img = ColorVec()
-        v_a = float(0.0)
-        v_d = float(0.0)
-        if inside:
-            t_final = transmittance[py, px]
-            last = last_ids[py, px]
-            for c in range(C):
-                v_img[c] = v_color[py, px, c]
-            v_a = v_alpha[py, px, 0]
-            if wp.static(DEPTH == 1):
-                v_d = v_depth[py, px, 0]
-        # Background: d colour / d bg = T_final; through T_final it also lowers d alpha.
-        bg_dot = float(0.0)
-        for c in range(C):
-            bg_dot += background[c] * v_img[c]
-        v_a_eff = v_a - bg_dot
-        v_bg = wp.tile_extract(wp.tile_sum(wp.tile(v_img * t_final, preserve_type=True)), 0)
+        # Per-pixel state, pixel p at [p] (and colour c at [p·C + c]).
+        fy = PixVec()
+        t_final = PixVec()
+        last = PixInt()
+        v_img = PixColor()
+        v_a_eff = PixVec()
+        v_d = PixVec()
+        bg_part = ColorVec()
+        last_max = int(-1)
+        for p in range(PX):
+            py = row0 + p
+            fy[p] = float(py) + 0.5
+            t_final[p] = 1.0
+            last[p] = -1
+            if px < width and py < height:
+                t_final[p] = transmittance[py, px]
+                last[p] = last_ids[py, px]
+                # Background: d colour / d bg = T_final; through T_final it also lowers d alpha.
+                bg_dot = float(0.0)
+                for c in range(C):
+                    v_img[p * C + c] = v_color[py, px, c]
+                    bg_dot += background[c] * v_img[p * C + c]
+                    bg_part[c] = bg_part[c] + v_img[p * C + c] * t_final[p]
+                v_a_eff[p] = v_alpha[py, px, 0] - bg_dot
+                if wp.static(DEPTH == 1):
+                    v_d[p] = v_depth[py, px, 0]
+            last_max = wp.max(last_max, last[p])
+        v_bg = wp.tile_extract(wp.tile_sum(wp.tile(bg_part, preserve_type=True)), 0)
         if leader:
             for c in range(C):
                 wp.atomic_add(v_background, c, v_bg[c])
 
         # Walk from the last Gaussian any pixel of the block used, back to the tile's start.
-        hi = wp.tile_extract(wp.tile_max(wp.tile(last)), 0) + 1
+        hi = wp.tile_extract(wp.tile_max(wp.tile(last_max)), 0) + 1
         warp_hi = hi
         if wp.static(WARP_WALK):
-            warp_hi = warp_max(last) + 1
-        T = t_final
-        buf = ColorVec()
-        buf_depth = float(0.0)
+            warp_hi = warp_max(last_max) + 1
+        T = PixVec()
+        for p in range(PX):
+            T[p] = t_final[p]
+        buf = PixColor()
+        buf_depth = PixVec()
         n_batches = (hi - start + B - 1) // B
         if wp.static(PACKED and COOP):
             ids = wp.tile_empty(shape=(B,), dtype=wp.int32, storage="shared")
@@ -470,7 +501,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 else:
                     gid = sorted_ids[b0 + j]
                     row = gid
-                if b0 + j <= last:
+                if b0 + j <= last_max:
+                    # The geometry, read once for the thread's pixels; colours and depth only where a
+                    # pixel blends the Gaussian.
                     if wp.static(PACKED):
                         xy, cn, op = record_geometry(rec, row)
                     elif wp.static(COOP):
@@ -482,45 +515,47 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         cn = conics[gid]
                         op = opacities[gid]
                     dx = xy[0] - fx
-                    dy = xy[1] - fy
-                    sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
-                    vis = wp.exp(-sigma)
-                    alpha = wp.min(alpha_max, op * vis)
-                    if sigma >= 0.0 and alpha >= alpha_min:
-                        touched = True
-                        ra = 1.0 / (1.0 - alpha)
-                        T = T * ra
-                        w = alpha * T
-                        d_alpha = float(0.0)
-                        for c in range(C):
-                            if wp.static(REC_COLOR):
-                                col = record_word(rec, row, _R_COLOR + c)
-                            elif wp.static(COOP):
-                                col = float(col_t[j, c])
-                            else:
-                                col = float(colors[gid, c])
-                            g[_COLOR + c] = w * v_img[c]
-                            d_alpha += (col * T - buf[c] * ra) * v_img[c]
-                            buf[c] = buf[c] + col * w
-                        if wp.static(DEPTH == 1):
-                            if wp.static(PACKED):
-                                dep = record_word(rec, row, _R_DEPTH)
-                            elif wp.static(COOP):
-                                dep = dep_t[j]
-                            else:
-                                dep = depths[gid]
-                            g[_COLOR + C] = w * v_d
-                            d_alpha += (dep * T - buf_depth * ra) * v_d
-                            buf_depth += dep * w
-                        d_alpha += t_final * ra * v_a_eff
-                        if op * vis <= alpha_max:
-                            d_sigma = -op * vis * d_alpha
-                            g[_XY + 0] = d_sigma * (cn[0] * dx + cn[1] * dy)
-                            g[_XY + 1] = d_sigma * (cn[1] * dx + cn[2] * dy)
-                            g[_CONIC + 0] = 0.5 * d_sigma * dx * dx
-                            g[_CONIC + 1] = d_sigma * dx * dy
-                            g[_CONIC + 2] = 0.5 * d_sigma * dy * dy
-                            g[_OPACITY] = vis * d_alpha
+                    for p in range(PX):
+                        if b0 + j <= last[p]:
+                            dy = xy[1] - fy[p]
+                            sigma = 0.5 * (cn[0] * dx * dx + cn[2] * dy * dy) + cn[1] * dx * dy
+                            vis = wp.exp(-sigma)
+                            alpha = wp.min(alpha_max, op * vis)
+                            if sigma >= 0.0 and alpha >= alpha_min:
+                                touched = True
+                                ra = 1.0 / (1.0 - alpha)
+                                T[p] = T[p] * ra
+                                w = alpha * T[p]
+                                d_alpha = float(0.0)
+                                for c in range(C):
+                                    if wp.static(REC_COLOR):
+                                        col = record_word(rec, row, _R_COLOR + c)
+                                    elif wp.static(COOP):
+                                        col = float(col_t[j, c])
+                                    else:
+                                        col = float(colors[gid, c])
+                                    g[_COLOR + c] = g[_COLOR + c] + w * v_img[p * C + c]
+                                    d_alpha += (col * T[p] - buf[p * C + c] * ra) * v_img[p * C + c]
+                                    buf[p * C + c] = buf[p * C + c] + col * w
+                                if wp.static(DEPTH == 1):
+                                    if wp.static(PACKED):
+                                        dep = record_word(rec, row, _R_DEPTH)
+                                    elif wp.static(COOP):
+                                        dep = dep_t[j]
+                                    else:
+                                        dep = depths[gid]
+                                    g[_COLOR + C] = g[_COLOR + C] + w * v_d[p]
+                                    d_alpha += (dep * T[p] - buf_depth[p] * ra) * v_d[p]
+                                    buf_depth[p] = buf_depth[p] + dep * w
+                                d_alpha += t_final[p] * ra * v_a_eff[p]
+                                if op * vis <= alpha_max:
+                                    d_sigma = -op * vis * d_alpha
+                                    g[_XY + 0] = g[_XY + 0] + d_sigma * (cn[0] * dx + cn[1] * dy)
+                                    g[_XY + 1] = g[_XY + 1] + d_sigma * (cn[1] * dx + cn[2] * dy)
+                                    g[_CONIC + 0] = g[_CONIC + 0] + 0.5 * d_sigma * dx * dx
+                                    g[_CONIC + 1] = g[_CONIC + 1] + d_sigma * dx * dy
+                                    g[_CONIC + 2] = g[_CONIC + 2] + 0.5 * d_sigma * dy * dy
+                                    g[_OPACITY] = g[_OPACITY] + vis * d_alpha
                 # Warp-uniform from here: every lane reaches the shuffles.
                 if warp_any(touched):
                     for k in range(NG):
@@ -537,7 +572,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
            f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}"
            f"{'_packed' if packed else ''}")
-    backward_tag = tag + (f"_r{max_registers}" if max_registers else "")
+    backward_tag = tag + (f"_r{max_registers}" if max_registers else "") + (f"_px{PX}" if PX > 1 else "")
     forward.__name__ = forward.__qualname__ = f"blend_forward_{tag}"
     backward.__name__ = backward.__qualname__ = f"blend_backward_{backward_tag}"
     # fast_math is a module option: each variant gets its own module.

@@ -29,6 +29,9 @@ VARIANTS = [
     ("gather=packed", _PACKED),
     ("gather=packed, fast_math (the defaults)", {**_PACKED, "fast_math": True}),
     ("gather=packed, color_storage=float16", {**_PACKED, "color_storage": "float16"}),
+    ("the defaults, backward_pixels=2", {**_PACKED, "fast_math": True, "backward_pixels": 2}),
+    ("the defaults, backward_pixels=2, backward_walk=warp",
+     {**_PACKED, "fast_math": True, "backward_pixels": 2, "backward_walk": "warp"}),
 ]
 
 

@@ -15,7 +15,8 @@ import torch
 import warp as wp
 
 from .kernels import binning
-from .kernels.blend import COLOR_STORAGES, CPU_BATCH, batch_size, blend_kernels, pack_kernel, record_width
+from .kernels.blend import (BACKWARD_PIXELS, COLOR_STORAGES, CPU_BATCH, backward_threads, batch_size, blend_kernels,
+                            pack_kernel, record_width)
 from .kernels.projection import RADIUS_RULES, projection_kernel
 from .warp_scope import WarpScope
 
@@ -89,6 +90,13 @@ class RasterOptions:
     # choice, 92 for 3 channels on sm_90). At 256 threads a block, ≤ 80 fits 3 blocks on an H100
     # multiprocessor instead of 2, ≤ 64 fits 4, against a few bytes spilled to local memory.
     backward_max_registers: int = 0
+    # Pixels each thread of the backward blending kernel walks (1, 2 or 4; 4 needs tiles of 16 or 32):
+    # a thread reads each Gaussian once for its pixels and sums their gradients before the warp's
+    # shuffles and atomics, which P pixels a thread divide by P, against more registers a thread.
+    # Same gradients up to the order of float sums. 2 because its backward measured fastest on an
+    # H100 (docs/results.md, "Two pixels a thread in the blending backward";
+    # scripts/bench_rasterizer.py --variant px1:backward_pixels=1 compares them).
+    backward_pixels: int = 2
     # How the blending kernels gather each batch of Gaussians: one indexed load per field (means2d,
     # conics, opacities, colours, depths: "fields"), or one of a per-Gaussian record that a small
     # kernel packs after projection ("packed": x, y, conic, opacity, depth and float32 colours in
@@ -116,6 +124,10 @@ class RasterOptions:
                              f"got {self.backward_max_registers}")
         if self.gather not in GATHERS:
             raise ValueError(f"gather must be one of {GATHERS}, got {self.gather!r}")
+        if self.backward_pixels not in BACKWARD_PIXELS or backward_threads(self.tile_size, self.backward_pixels) < 32:
+            # The backward's gradient sums are warp shuffles over 32 lanes: a tile must fill a warp.
+            raise ValueError(f"backward_pixels must be one of {BACKWARD_PIXELS} and leave a tile at least 32 "
+                             f"threads, got {self.backward_pixels} with tile_size {self.tile_size}")
         if self.backward_walk not in BACKWARD_WALKS:
             raise ValueError(f"backward_walk must be one of {BACKWARD_WALKS}, got {self.backward_walk!r}")
         if self.render_depth not in DEPTH_MODES:
@@ -222,7 +234,7 @@ def rasterize(
             alpha_min, alpha_max, transmittance_min, tile_size, antialiased, radius_rule,
             render_depth=None | "accumulated" | "expected", fast_math, color_storage="float32" |
             "float16", tile_overlap="ellipse" | "rectangle", capture, forward_block, backward_block,
-            backward_walk, backward_max_registers, gather="fields" | "packed"),
+            backward_walk, backward_max_registers, backward_pixels, gather="fields" | "packed"),
             replacing those of ``options``.
 
     Returns:
@@ -422,7 +434,8 @@ class RenderPlan:
         with_depth = opts.render_depth is not None
         cooperative = not (self.device.is_cpu and not wp.config.enable_cpu_blocks)
         self._fwd_block = opts.block(opts.forward_block)
-        self._bwd_block = opts.block(opts.backward_block)
+        self._bwd_threads = backward_threads(opts.tile_size, opts.backward_pixels)
+        self._bwd_block = min(opts.block(opts.backward_block), self._bwd_threads)
         self._blend = blend_kernels_for(opts, c, with_depth, cooperative)
         self._pack = None if opts.gather != "packed" else dict(
             kernel=pack_kernel(c, opts.color_storage), dim=n,
@@ -491,8 +504,8 @@ class RenderPlan:
         """Blend adjoint, then the projection adjoint: accumulates into ``self.grads`` and
         ``means2d``'s gradient from ``cotangents``, Warp float32 views of dL/d image [H, W, C],
         dL/d alpha [H, W, 1] and dL/d depth [H, W, 1]."""
-        w, ts = self.w, self.opts.tile_size
-        wp.launch(self._blend[1], dim=(self.n_tiles, ts * ts), block_dim=self._bwd_block,
+        w = self.w
+        wp.launch(self._blend[1], dim=(self.n_tiles, self._bwd_threads), block_dim=self._bwd_block,
                   inputs=self._blend_args() + [w["transmittance"], w["last"], *cotangents],
                   outputs=[w["means2d"].grad, w["conics"].grad, w["opac_out"].grad, w["colors_grad"],
                            w["depths"].grad, w["background"].grad])
@@ -509,7 +522,8 @@ def blend_kernels_for(opts: RasterOptions, channels: int, with_depth: bool, coop
     batch = batch_size(channels, opts.block(opts.forward_block), with_depth, opts.color_storage, packed) \
         if cooperative else CPU_BATCH
     return blend_kernels(channels, opts.tile_size, with_depth, batch, cooperative, opts.color_storage, opts.fast_math,
-                         opts.backward_walk == "warp", opts.backward_max_registers, packed=packed)
+                         opts.backward_walk == "warp", opts.backward_max_registers, packed=packed,
+                         backward_pixels=opts.backward_pixels)
 
 
 OUTPUT_NAMES = ("image", "alpha", "depth", "radii", "means2d", "conics", "depths", "opacities")

@@ -13,10 +13,12 @@ SCRIPT = """
     from securegs_warp.raster_cases import error_row, layered_scene, random_scene, render_both
 
     out = []
-    for blocks in [(256, 32, "block"), (64, 64, "block"), (32, 256, "block"), (64, 64, "warp")]:
+    # (forward block, backward block, backward walk, backward pixels a thread)
+    for blocks in [(256, 32, "block", 1), (64, 64, "block", 1), (32, 256, "block", 1), (64, 64, "warp", 1),
+                   (256, 256, "block", 2), (64, 32, "warp", 2)]:
         for name, scene in [("random", random_scene(30, n=70, width=37, height=29)), ("layers", layered_scene())]:
             scene.kwargs.update(forward_block=blocks[0], backward_block=blocks[1], backward_walk=blocks[2],
-                                gather=GATHER)
+                                backward_pixels=blocks[3], gather=GATHER)
             ours, ref = render_both(scene)
             out.append({"blocks": blocks, "scene": name, **error_row(ours, ref)})
     print("RESULT" + json.dumps(out))
@@ -26,7 +28,7 @@ SCRIPT = """
 @pytest.mark.parametrize("gather", ["fields", "packed"])
 def test_multithreaded_blocks_match_reference(gather):
     rows = run_with_cpu_blocks(SCRIPT.replace("GATHER", repr(gather)))
-    assert len(rows) == 8
+    assert len(rows) == 12
     for row in rows:
         assert row["image"] <= 1e-4 and row["alpha"] <= 1e-4, row
         for name in DIFF_INPUTS:
