@@ -283,9 +283,9 @@ class SecureConfig:
         to float rounding, for a fraction of the host work; in the cover mode without the hidden
         crop its rasterize is replayed too (``RasterOptions.capture``; the intersection capacity
         grows with what the views need, and a step whose render overflowed it is skipped). Robust
-        training's attacks on anchor positions, ``noise-xyz`` and ``quantize`` (which move the
-        serving set every step), evaluation (no gradients) and the CPU decode op by op, as
-        everything does with it off.
+        training's attacks on anchor positions (``noise-xyz``, ``quantize``) replay too: they serve
+        as many anchors, by rank (``SecureModel._decoding_rows``). Evaluation (no gradients) and the
+        CPU decode op by op, as everything does with it off.
     """
 
     payload: str = "object+bits:48"

@@ -174,6 +174,27 @@ def test_the_uncompacted_hidden_render_is_the_compacted_one(hidden_scene, option
         assert (row_grads[name] - g).abs().max() <= 1e-5 * g.abs().max().clamp_min(1e-12), name
 
 
+def test_perturbed_positions_serve_as_many_rows_by_rank(hidden_scene):
+    """Position noise moves anchors across the serving radius: robust training then serves the
+    anchors nearest the box as they now lie, as many as the radius serves unperturbed, so the row
+    count stays fixed (the captured decoding replays) while the set follows the moved anchors."""
+    from securegs_warp.secure.robust import perturb
+
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=10, raster=CPU_RASTER),
+                            SecureConfig(payload="object", robust="noise-xyz:0.5", hidden_anchors=64))
+    trainer.step()
+    model, private = trainer.model, trainer.model.secrets[0]
+    anchors = perturb(model.anchors, trainer.robust, torch.Generator().manual_seed(0))
+    assert anchors.xyz is not model.anchors.xyz and model.fixed_rows(0, anchors)
+    served = private.serving_index(model.anchors.xyz)
+    assert 0 < len(served) < model.anchors.num_anchors
+    mask, index, _ = model._decoding_rows(private, anchors, hidden_scene.train[1])
+    assert len(index) == len(served) and int(mask.sum()) == len(index) and torch.equal(mask.nonzero()[:, 0], index)
+    distance = private.box_distance(anchors.xyz)
+    assert distance[mask].max() <= distance[~mask].min()
+    assert not torch.equal(index, served)  # the noise moved some anchors in or out
+
+
 def test_robust_dropout_keeps_the_box_frames_rows_and_renders_as_leaving_them_out(hidden_scene):
     """Robust training drops anchors by ``keep``: in the box frame their rows stay (at opacity 0, a
     fixed row count that graphs can replay) and the render and gradients are those of leaving the

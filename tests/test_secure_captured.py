@@ -84,11 +84,13 @@ def test_the_replayed_decoding_renders_and_differentiates_as_the_eager_one():
 
 
 @pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
-def test_robust_training_replays_the_hidden_branch_and_matches_op_by_op():
-    """Robust training's dropout keeps the serving rows (``keep``), and feature noise changes values
-    only: the hidden branch is replayed as without attacks, with the same render and gradients."""
+@pytest.mark.parametrize("robust", ["prune-random:0.5+noise-feat:0.3", "prune-random:0.5+noise-feat:0.3+noise-xyz:0.01"])
+def test_robust_training_replays_the_hidden_branch_and_matches_op_by_op(robust):
+    """Robust training's dropout keeps the serving rows (``keep``), feature noise changes values
+    only, and position noise serves as many rows by rank: the hidden branch is replayed as without
+    attacks, with the same render and gradients."""
     from securegs_warp.secure.robust import perturb
-    t = _trainer("cuda", robust="prune-random:0.5+noise-feat:0.3")
+    t = _trainer("cuda", robust=robust)
     for _ in range(3):
         t.step()
     assert t.model._captured[0]._graphs, "robust training did not replay the decoder"
@@ -97,6 +99,7 @@ def test_robust_training_replays_the_hidden_branch_and_matches_op_by_op():
     weights = torch.rand(t.scene.train[1].height, t.scene.train[1].width, 3, device="cuda")
     anchors = perturb(t.model.anchors, t.robust, torch.Generator().manual_seed(1))
     assert not anchors.keep.all()
+    assert (anchors.xyz is t.model.anchors.xyz) == ("noise-xyz" not in robust)
     eager_image, eager = _render_and_grads(t, False, weights, False, anchors=anchors)
     image, replayed = _render_and_grads(t, True, weights, False, replay_raster=True, anchors=anchors)
     assert (image - eager_image).abs().max() < 1e-5

@@ -168,6 +168,12 @@ class PrivateHeads(nn.Module):
                                  lambda: self.box_distance(xyz) <= self.serving_radius)
 
     @torch.no_grad()
+    def nearest_serving(self, xyz: torch.Tensor, count: int) -> torch.Tensor:
+        """[count] long, ascending: the indices of the ``count`` anchor positions of xyz [N, 3]
+        nearest the box (``box_distance``), found on the device without a host read."""
+        return self.box_distance(xyz).topk(count, largest=False).indices.sort().values
+
+    @torch.no_grad()
     def serving_index(self, xyz: torch.Tensor) -> torch.Tensor | None:
         """[Ns] long, the indices of ``serving_mask``'s True entries (None where it is None), kept
         with the mask: their host read (a count) is made once per refit, not once per render."""

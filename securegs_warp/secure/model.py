@@ -78,10 +78,10 @@ class SecureModel(ScaffoldModel):
 
     def fixed_rows(self, secret: int = 0, anchors=None) -> bool:
         """Whether secret ``secret``'s hidden render of ``anchors`` (None: this model's own;
-        robust training's ``PerturbedAnchors``) decodes the same rows at every view until the key's
-        serving radius is refit: a box-frame key's serving anchors, found from this model's own
-        anchor positions (an attack on the positions moves them in and out of the radius)."""
-        return self._key(secret).serves_by_radius and (anchors is None or anchors.xyz is self.anchors.xyz)
+        robust training's ``PerturbedAnchors``) decodes the same number of rows at every view until
+        the key's serving radius is refit: a box-frame key's serving anchors (with perturbed
+        positions, as many of them as lie within the radius unperturbed; see ``_decoding_rows``)."""
+        return self._key(secret).serves_by_radius
 
     def _decoding_rows(self, private: PrivateHeads, anchors, camera, visible: torch.Tensor | None = None) -> tuple:
         """([N] bool or None, [Nv] long or None, [N] bool or None): the anchors whose hidden
@@ -89,11 +89,21 @@ class SecureModel(ScaffoldModel):
         visible ones; None: render_view's visibility test), their indices where the key keeps them
         (else None), and the anchors among them whose Gaussians may render (robust training's
         ``PerturbedAnchors.keep``; None: all). The box frame keeps its serving rows and drops by
-        ``keep`` (a fixed row count); the anchor frame leaves dropped anchors out of the mask."""
-        serving = private.serving_mask(anchors.xyz)
+        ``keep`` (a fixed row count); the anchor frame leaves dropped anchors out of the mask.
+
+        Perturbed positions (robust training's noise or quantisation) move anchors across the
+        serving radius. They are served by rank instead: the anchors nearest the box as they now
+        lie, as many as the radius serves unperturbed. That is the set ``fix_serving`` defines (the
+        ``serving`` nearest), an attack's flips at the radius included, and its row count stays
+        fixed, so the captured decoding and rasterize still replay."""
+        serving = private.serving_mask(self.anchors.xyz)
         keep = getattr(anchors, "keep", None)
         if serving is not None:
-            return serving, private.serving_index(anchors.xyz), keep
+            index = private.serving_index(self.anchors.xyz)
+            if anchors.xyz is not self.anchors.xyz:
+                index = private.nearest_serving(anchors.xyz, len(index))
+                serving = torch.zeros_like(serving).index_fill_(0, index, True)
+            return serving, index, keep
         if keep is None:
             return visible, None, None
         mask = visible
