@@ -14,9 +14,9 @@ from securegs_warp.cuda_resources import kernel_barriers, kernel_resources
 from securegs_warp.rasterizer import RasterOptions, blend_kernels_for
 
 # (label, RasterOptions fields): the variants scripts/bench_rasterizer.py times on the GPU. Each names
-# its gather and fast_math, so the rows keep their meaning whatever the defaults are.
-_FIELDS = {"gather": "fields", "fast_math": False}
-_PACKED = {"gather": "packed", "fast_math": False}
+# its gather, fast_math and backward_pixels, so the rows keep their meaning whatever the defaults are.
+_FIELDS = {"gather": "fields", "fast_math": False, "backward_pixels": 1}
+_PACKED = {"gather": "packed", "fast_math": False, "backward_pixels": 1}
 VARIANTS = [
     ("gather=fields", _FIELDS),
     ("gather=fields, backward_walk=warp", {**_FIELDS, "backward_walk": "warp"}),
@@ -27,11 +27,11 @@ VARIANTS = [
      {**_FIELDS, "backward_walk": "warp", "fast_math": True, "backward_max_registers": 64}),
     ("gather=fields, color_storage=float16", {**_FIELDS, "color_storage": "float16"}),
     ("gather=packed", _PACKED),
-    ("gather=packed, fast_math (the defaults)", {**_PACKED, "fast_math": True}),
+    ("gather=packed, fast_math", {**_PACKED, "fast_math": True}),
     ("gather=packed, color_storage=float16", {**_PACKED, "color_storage": "float16"}),
-    ("the defaults, backward_pixels=2", {**_PACKED, "fast_math": True, "backward_pixels": 2}),
-    ("the defaults, backward_pixels=2, backward_walk=warp",
-     {**_PACKED, "fast_math": True, "backward_pixels": 2, "backward_walk": "warp"}),
+    ("gather=packed, fast_math, backward_pixels=2 (the defaults)", {**_PACKED, "fast_math": True, "backward_pixels": 2}),
+    ("the defaults, backward_walk=warp", {**_PACKED, "fast_math": True, "backward_pixels": 2, "backward_walk": "warp"}),
+    ("gather=packed, fast_math, backward_pixels=4", {**_PACKED, "fast_math": True, "backward_pixels": 4}),
 ]
 
 
