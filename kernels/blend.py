@@ -1,8 +1,9 @@
 """Front-to-back alpha blending over each tile's depth-sorted Gaussians, and its adjoint.
 
 Launch layout: ``dim=(n_tiles, tile_size²)``, ``block_dim=tile_size²``: one thread per pixel of a
-tile (the backward optionally walks two pixels a thread: ``backward_pixels``). On CUDA a block is a tile: each batch of Gaussians is gathered once into shared memory
-(``tile_load_indexed``) and read by every pixel, and the block stops when all its pixels are done.
+tile (the backward's threads may walk several pixels each: ``backward_pixels``). On CUDA a block is
+a tile: each batch of Gaussians is gathered once into shared memory (``tile_load_indexed``) and
+read by every pixel, and the block stops when all its pixels are done.
 On the CPU ``block_dim`` resolves to 1: each thread is its own block, gathers the batch itself and
 the block-wide votes and sums reduce over one thread — the same code, correct for both.
 
