@@ -184,6 +184,14 @@ def backward_threads(tile_size: int, pixels: int) -> int:
     return tile_size * tile_size // pixels
 
 
+def check_backward_pixels(tile_size: int, pixels: int) -> None:
+    """Refuse a pixel count outside BACKWARD_PIXELS, or one that leaves a tile fewer than 32
+    threads: the backward's gradient sums are warp shuffles over 32 lanes."""
+    if pixels not in BACKWARD_PIXELS or backward_threads(tile_size, pixels) < 32:
+        raise ValueError(f"backward_pixels must be one of {BACKWARD_PIXELS} and leave a tile at least 32 "
+                         f"threads, got {pixels} with tile_size {tile_size}")
+
+
 # On the CPU (one thread per block, direct reads) the batch only paces the walk over the list.
 CPU_BATCH = 32
 
@@ -235,9 +243,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     """
     if channels < 1:
         raise ValueError(f"channels must be >= 1, got {channels}")
-    if backward_pixels not in BACKWARD_PIXELS or backward_threads(tile_size, backward_pixels) < 32:
-        raise ValueError(f"backward_pixels must be one of {BACKWARD_PIXELS} with at least 32 threads a tile, "
-                         f"got {backward_pixels} for tiles of {tile_size}")
+    check_backward_pixels(tile_size, backward_pixels)
     ColorT = COLOR_STORAGES[color_storage]
     C = channels
     TS = tile_size

@@ -15,8 +15,8 @@ import torch
 import warp as wp
 
 from .kernels import binning
-from .kernels.blend import (BACKWARD_PIXELS, COLOR_STORAGES, CPU_BATCH, backward_threads, batch_size, blend_kernels,
-                            pack_kernel, record_width)
+from .kernels.blend import (COLOR_STORAGES, CPU_BATCH, backward_threads, batch_size, blend_kernels,
+                            check_backward_pixels, pack_kernel, record_width)
 from .kernels.projection import RADIUS_RULES, projection_kernel
 from .warp_scope import WarpScope
 
@@ -124,10 +124,7 @@ class RasterOptions:
                              f"got {self.backward_max_registers}")
         if self.gather not in GATHERS:
             raise ValueError(f"gather must be one of {GATHERS}, got {self.gather!r}")
-        if self.backward_pixels not in BACKWARD_PIXELS or backward_threads(self.tile_size, self.backward_pixels) < 32:
-            # The backward's gradient sums are warp shuffles over 32 lanes: a tile must fill a warp.
-            raise ValueError(f"backward_pixels must be one of {BACKWARD_PIXELS} and leave a tile at least 32 "
-                             f"threads, got {self.backward_pixels} with tile_size {self.tile_size}")
+        check_backward_pixels(self.tile_size, self.backward_pixels)
         if self.backward_walk not in BACKWARD_WALKS:
             raise ValueError(f"backward_walk must be one of {BACKWARD_WALKS}, got {self.backward_walk!r}")
         if self.render_depth not in DEPTH_MODES:

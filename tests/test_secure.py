@@ -185,7 +185,7 @@ def test_perturbed_positions_serve_as_many_rows_by_rank(hidden_scene):
     trainer.step()
     model, private = trainer.model, trainer.model.secrets[0]
     anchors = perturb(model.anchors, trainer.robust, torch.Generator().manual_seed(0))
-    assert anchors.xyz is not model.anchors.xyz and model.fixed_rows(0, anchors)
+    assert anchors.xyz is not model.anchors.xyz and model.fixed_rows(0)
     served = private.serving_index(model.anchors.xyz)
     assert 0 < len(served) < model.anchors.num_anchors
     mask, index, _ = model._decoding_rows(private, anchors, hidden_scene.train[1])
@@ -208,7 +208,7 @@ def test_robust_dropout_keeps_the_box_frames_rows_and_renders_as_leaving_them_ou
     model, private, cam = trainer.model, trainer.model.secrets[0], hidden_scene.train[1]
     anchors = perturb(model.anchors, trainer.robust, torch.Generator().manual_seed(3))
     serving = private.serving_mask(model.anchors.xyz)
-    assert anchors.xyz is model.anchors.xyz and model.fixed_rows(0, anchors)
+    assert anchors.xyz is model.anchors.xyz and model.fixed_rows(0)
     assert (serving & ~anchors.keep).any() and (serving & anchors.keep).any()
     weights = torch.rand(cam.height, cam.width, 3, generator=torch.Generator().manual_seed(0))
     results = {}

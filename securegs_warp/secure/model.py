@@ -65,7 +65,7 @@ class SecureModel(ScaffoldModel):
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
         rows = None
-        if capture and self.fixed_rows(secret, anchors) and captured.replayable(self.anchors.xyz) \
+        if capture and self.fixed_rows(secret) and captured.replayable(self.anchors.xyz) \
                 and torch.is_grad_enabled():
             if secret not in self._captured or self._captured[secret].private is not private:
                 self._captured[secret] = captured.CapturedRows(private)
@@ -76,11 +76,11 @@ class SecureModel(ScaffoldModel):
                            offset_source=source, feature_grad=feature_grad, scaling_grad=scaling_grad,
                            anchor_mask=mask, anchor_index=index, rows=rows, compact=compact, keep=keep)
 
-    def fixed_rows(self, secret: int = 0, anchors=None) -> bool:
-        """Whether secret ``secret``'s hidden render of ``anchors`` (None: this model's own;
-        robust training's ``PerturbedAnchors``) decodes the same number of rows at every view until
-        the key's serving radius is refit: a box-frame key's serving anchors (with perturbed
-        positions, as many of them as lie within the radius unperturbed; see ``_decoding_rows``)."""
+    def fixed_rows(self, secret: int = 0) -> bool:
+        """Whether secret ``secret``'s hidden renders decode the same number of rows at every view
+        until the key's serving radius is refit, robust training's perturbed anchors included: a
+        box-frame key's serving anchors (with perturbed positions, as many of them as lie within the
+        radius unperturbed; see ``_decoding_rows``)."""
         return self._key(secret).serves_by_radius
 
     def _decoding_rows(self, private: PrivateHeads, anchors, camera, visible: torch.Tensor | None = None) -> tuple:

@@ -286,7 +286,7 @@ class SecureTrainer(ScaffoldTrainer):
             out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
                                      step=step, anchors=anchors, secret=secret,
                                      visible=visible if view == index else None, compact=compact,
-                                     replay_raster=self.replays_hidden_raster(secret, anchors, compact, crop))
+                                     replay_raster=self.replays_hidden_raster(secret, compact, crop))
             target = p.views[view] if p.views is not None else p.image
             share = 1.0
             if crop is not None:
@@ -298,14 +298,14 @@ class SecureTrainer(ScaffoldTrainer):
                                                                              target, share)
         return extra, hidden
 
-    def replays_hidden_raster(self, secret: int, anchors, compact: bool, crop: Crop | None) -> bool:
+    def replays_hidden_raster(self, secret: int, compact: bool, crop: Crop | None) -> bool:
         """Whether a training step's hidden render of secret ``secret`` rasterizes with
         ``RasterOptions.capture``: on CUDA with ``hidden_capture``, for an uncompacted render of
         fixed rows (``SecureModel.fixed_rows``) at whole views, one shape step after step until the
         serving radius is refit (a step whose view overflows the capacity is skipped, see
         ``ViewTrainer.step``)."""
         return (self.secure.hidden_capture and self.device.type == "cuda" and not compact and crop is None
-                and self.model.fixed_rows(secret, anchors))
+                and self.model.fixed_rows(secret))
 
     def _hidden_crop(self, secret: int, view: int) -> Crop | None:
         """The part of training view ``view`` that secret ``secret``'s hidden render is trained on
