@@ -4,7 +4,8 @@ Pipeline (driven by ``securegs_warp.rasterizer``):
 1. ``count_tiles``: tiles covered by each Gaussian's screen rectangle (int64: 3M Gaussians times
    dozens of tiles overflows int32); with ``exact`` only the tiles of that rectangle that the
    Gaussian's ellipse at the alpha threshold reaches (``reaches_tile``, Speedy-Splat's AccuTile):
-   a thin diagonal Gaussian touches a band of tiles, not its whole bounding square.
+   a thin diagonal Gaussian touches a band of tiles, not its whole bounding square. The answers
+   for a rectangle of up to MASK_TILES tiles are kept as a bit mask, so step 3 does not test again.
 2. inclusive prefix sum of the counts (``wp.utils.array_scan``): its last entry is the total, read
    on the host (the render's one synchronisation); each Gaussian writes at ``ends[i] - counts[i]``.
 3. ``emit_intersections``: one 64-bit key per (Gaussian, tile): tile id in the high 32 bits, the
@@ -46,57 +47,85 @@ _SIGMA_SLACK_REL = 1.0e-4
 
 
 @wp.func
-def edge_sigma(conic: wp.vec3d, fixed: wp.float64, lo: wp.float64, hi: wp.float64, fixed_is_x: bool) -> wp.vec2d:
+def edge_sigma(conic: wp.vec3d, inv_diag: wp.vec2d, fixed: wp.float64, lo: wp.float64, hi: wp.float64,
+               fixed_is_x: bool) -> wp.vec2d:
     """(min sigma, its terms' magnitude) along one edge of a rectangle in offsets from the centre:
-    sigma(dx, dy) = ½(a·dx² + c·dy²) + b·dx·dy with ``fixed`` the edge's dx (``fixed_is_x``) or dy."""
+    sigma(dx, dy) = ½(a·dx² + c·dy²) + b·dx·dy with ``fixed`` the edge's dx (``fixed_is_x``) or dy;
+    inv_diag = (1/a, 1/c)."""
     a = conic[0]
     b = conic[1]
     c = conic[2]
     # sigma along the edge is ½·q·t² + b·fixed·t + ½·p·fixed², minimal at t = −b·fixed/q, clamped.
     q = c
     p = a
+    inv_q = inv_diag[1]
     if not fixed_is_x:
         q = a
         p = c
-    t = wp.clamp(-b * fixed / q, lo, hi)
+        inv_q = inv_diag[0]
+    t = wp.clamp(-b * fixed * inv_q, lo, hi)
     half = wp.float64(0.5)
     value = half * (q * t * t + p * fixed * fixed) + b * fixed * t
     scale = half * (q * t * t + p * fixed * fixed) + wp.abs(b * fixed * t)
     return wp.vec2d(value, scale)
 
 
+@wp.struct
+class Ellipse:
+    """What ``reaches_tile`` needs of one Gaussian, computed once for all its tiles: its centre, its
+    conic in float64 (the 1D minimum cancels in float32 for very anisotropic conics), the inverses of
+    the conic's diagonal and the sigma at which opacity·e^(−sigma) falls to alpha_min."""
+
+    mean2d: wp.vec2
+    conic: wp.vec3d
+    inv_diag: wp.vec2d
+    limit: wp.float64
+
+
 @wp.func
-def reaches_tile(mean2d: wp.vec2, conic: wp.vec3, opacity: float, alpha_min: float, tx: int, ty: int,
-                 tile_size: int) -> bool:
+def ellipse(mean2d: wp.vec2, conic: wp.vec3, opacity: float, alpha_min: float) -> Ellipse:
+    """The ``Ellipse`` of a Gaussian whose opacity reaches alpha_min (callers skip the others)."""
+    e = Ellipse()
+    e.mean2d = mean2d
+    e.conic = wp.vec3d(wp.float64(conic[0]), wp.float64(conic[1]), wp.float64(conic[2]))
+    one = wp.float64(1.0)
+    e.inv_diag = wp.vec2d(one / e.conic[0], one / e.conic[2])
+    e.limit = wp.float64(wp.log(opacity / alpha_min))
+    return e
+
+
+@wp.func
+def reaches_tile(e: Ellipse, tx: int, ty: int, tile_size: int) -> bool:
     """Whether some point of tile (tx, ty)'s pixel-centre rectangle has opacity·e^(−sigma) >= alpha_min
     (up to ``_SIGMA_SLACK_*``): the exact minimum of the convex sigma over the rectangle, which is 0
-    when the centre is inside and otherwise lies on one of its four edges. float64: the 1D minimum
-    cancels for very anisotropic conics."""
-    if opacity < alpha_min:
-        return False
-    limit = wp.float64(wp.log(opacity / alpha_min))
+    when the centre is inside and otherwise lies on one of its four edges."""
     ts = float(tile_size)
     # Offsets (pixel centre − mean) of the tile's first and last pixel centres.
-    x0 = wp.float64(float(tx) * ts + 0.5 - mean2d[0])
-    x1 = wp.float64(float(tx) * ts + ts - 0.5 - mean2d[0])
-    y0 = wp.float64(float(ty) * ts + 0.5 - mean2d[1])
-    y1 = wp.float64(float(ty) * ts + ts - 0.5 - mean2d[1])
+    x0 = wp.float64(float(tx) * ts + 0.5 - e.mean2d[0])
+    x1 = wp.float64(float(tx) * ts + ts - 0.5 - e.mean2d[0])
+    y0 = wp.float64(float(ty) * ts + 0.5 - e.mean2d[1])
+    y1 = wp.float64(float(ty) * ts + ts - 0.5 - e.mean2d[1])
     zero = wp.float64(0.0)
     if x0 <= zero and zero <= x1 and y0 <= zero and zero <= y1:
         return True
-    cd = wp.vec3d(wp.float64(conic[0]), wp.float64(conic[1]), wp.float64(conic[2]))
-    best = edge_sigma(cd, x0, y0, y1, True)
-    other = edge_sigma(cd, x1, y0, y1, True)
+    best = edge_sigma(e.conic, e.inv_diag, x0, y0, y1, True)
+    other = edge_sigma(e.conic, e.inv_diag, x1, y0, y1, True)
     if other[0] < best[0]:
         best = other
-    other = edge_sigma(cd, y0, x0, x1, False)
+    other = edge_sigma(e.conic, e.inv_diag, y0, x0, x1, False)
     if other[0] < best[0]:
         best = other
-    other = edge_sigma(cd, y1, x0, x1, False)
+    other = edge_sigma(e.conic, e.inv_diag, y1, x0, x1, False)
     if other[0] < best[0]:
         best = other
     slack = wp.float64(_SIGMA_SLACK_ABS) + wp.float64(_SIGMA_SLACK_REL) * best[1]
-    return best[0] <= limit + slack
+    return best[0] <= e.limit + slack
+
+
+# Rectangles of at most this many tiles keep the ellipse test's answers as a bit mask from
+# ``count_tiles`` to ``emit_intersections``, which then only reads it; larger ones test again.
+# 63: the bits of an int64 below its sign bit (torch allocates it; torch 2.1 has no uint64).
+MASK_TILES = 63
 
 
 @wp.kernel
@@ -111,20 +140,30 @@ def count_tiles(
     tiles_x: int,
     tiles_y: int,
     counts: wp.array(dtype=wp.int64),
+    masks: wp.array(dtype=wp.int64),
 ):
+    """counts[i]: the tiles Gaussian i is binned to; with ``exact``, masks[i]: which tiles of its
+    rectangle (bit (ty − y0)·width + (tx − x0)); emit_intersections reads it for a rectangle of at
+    most MASK_TILES tiles."""
     i = wp.tid()
     r = radii[i]
     n = wp.int64(0)
     if r[0] > 0 and r[1] > 0:
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
         if exact != 0:
-            xy = means2d[i]
-            cn = conics[i]
             op = opacities[i]
-            for ty in range(rect[1], rect[3]):
-                for tx in range(rect[0], rect[2]):
-                    if reaches_tile(xy, cn, op, alpha_min, tx, ty, tile_size):
-                        n += wp.int64(1)
+            mask = wp.int64(0)
+            if op >= alpha_min:
+                e = ellipse(means2d[i], conics[i], op, alpha_min)
+                b = int(0)
+                for ty in range(rect[1], rect[3]):
+                    for tx in range(rect[0], rect[2]):
+                        if reaches_tile(e, tx, ty, tile_size):
+                            n += wp.int64(1)
+                            if b < MASK_TILES:
+                                mask = mask | (wp.int64(1) << wp.int64(b))
+                        b += 1
+            masks[i] = mask
         else:
             n = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
     counts[i] = n
@@ -141,6 +180,7 @@ def emit_intersections(
     depth_bits: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int64),
     ends: wp.array(dtype=wp.int64),
+    masks: wp.array(dtype=wp.int64),
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
@@ -150,16 +190,27 @@ def emit_intersections(
 ):
     i = wp.tid()
     r = radii[i]
-    if r[0] > 0 and r[1] > 0:
+    if r[0] > 0 and r[1] > 0 and counts[i] > wp.int64(0):
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
         low = wp.int64(depth_bits[i]) & wp.int64(0xFFFFFFFF)
         k = ends[i] - counts[i]
-        xy = means2d[i]
-        cn = conics[i]
-        op = opacities[i]
+        masked = exact != 0 and (rect[2] - rect[0]) * (rect[3] - rect[1]) <= MASK_TILES
+        mask = wp.int64(0)
+        e = Ellipse()
+        if masked:
+            mask = masks[i]
+        elif exact != 0:
+            e = ellipse(means2d[i], conics[i], opacities[i], alpha_min)
+        b = int(0)
         for ty in range(rect[1], rect[3]):
             for tx in range(rect[0], rect[2]):
-                if exact == 0 or reaches_tile(xy, cn, op, alpha_min, tx, ty, tile_size):
+                hit = exact == 0
+                if masked:
+                    hit = ((mask >> wp.int64(b)) & wp.int64(1)) != wp.int64(0)
+                elif exact != 0:
+                    hit = reaches_tile(e, tx, ty, tile_size)
+                b += 1
+                if hit:
                     # A render with a fixed capacity drops what does not fit (and reports it).
                     if k < capacity:
                         keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | low

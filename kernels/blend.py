@@ -137,12 +137,15 @@ def record_geometry(src: Any, row: int):
 
 @functools.lru_cache(maxsize=None)
 def pack_kernel(channels: int, color_storage: str):
-    """Kernel writing each Gaussian's packed record into ``records`` [N, record_width] (float32
-    words; the blending kernels read the same memory as [N, record_width / 4] vec4) from the
-    projection's outputs (and the colours when ``colors_in_record``), launched with dim=N."""
+    """Kernel writing each Gaussian's packed record into ``records`` [N, record_width / 4] vec4 (the
+    table the blending kernels gather) from the projection's outputs (and the colours when
+    ``colors_in_record``), launched with dim=N. A row is written as whole vec4s: word by word, a
+    thread's stores are 4 bytes each at a stride of the row's width across a warp."""
     C = channels
     WITH_COLORS = colors_in_record(color_storage)
     ColorT = COLOR_STORAGES[color_storage]
+    W = record_width(channels, color_storage)
+    Row = wp.types.vector(length=W, dtype=wp.float32)
 
     def pack(
         means2d: wp.array(dtype=wp.vec2),
@@ -150,26 +153,25 @@ def pack_kernel(channels: int, color_storage: str):
         opacities: wp.array(dtype=float),
         depths: wp.array(dtype=float),
         colors: wp.array2d(dtype=ColorT),
-        records: wp.array2d(dtype=float),
+        records: wp.array2d(dtype=wp.vec4),
     ):
         i = wp.tid()
         xy = means2d[i]
         cn = conics[i]
-        records[i, _R_XY] = xy[0]
-        records[i, _R_XY + 1] = xy[1]
-        records[i, _R_CONIC] = cn[0]
-        records[i, _R_CONIC + 1] = cn[1]
-        records[i, _R_CONIC + 2] = cn[2]
-        records[i, _R_OPACITY] = opacities[i]
-        records[i, _R_DEPTH] = depths[i]
-        used = _R_COLOR
+        # Zero-initialised: the padding is gathered with the rest of the row.
+        r = Row()
+        r[_R_XY] = xy[0]
+        r[_R_XY + 1] = xy[1]
+        r[_R_CONIC] = cn[0]
+        r[_R_CONIC + 1] = cn[1]
+        r[_R_CONIC + 2] = cn[2]
+        r[_R_OPACITY] = opacities[i]
+        r[_R_DEPTH] = depths[i]
         if wp.static(WITH_COLORS):
             for c in range(C):
-                records[i, _R_COLOR + c] = float(colors[i, c])
-            used = _R_COLOR + C
-        # The padding is gathered with the rest of the row: zero it rather than move uninitialised words.
-        for k in range(used, records.shape[1]):
-            records[i, k] = 0.0
+                r[_R_COLOR + c] = float(colors[i, c])
+        for q in range(W // 4):
+            records[i, q] = wp.vec4(r[4 * q], r[4 * q + 1], r[4 * q + 2], r[4 * q + 3])
 
     pack.__name__ = pack.__qualname__ = f"pack_records_c{C}_{color_storage}"
     return wp.kernel(pack, enable_backward=False, module="unique")

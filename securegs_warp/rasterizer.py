@@ -374,6 +374,7 @@ class RenderPlan:
         self.last = torch.empty(height, width, device=tdev, dtype=torch.int32)
         self.counts = torch.empty(n, device=tdev, dtype=torch.int64)
         self.ends = torch.empty(n, device=tdev, dtype=torch.int64)
+        self.tile_masks = torch.empty(n, device=tdev, dtype=torch.int64)
         # Without gradients (no_grad, or no input that needs one) nothing is allocated for them.
         g = with_grads
         with wp.ScopedDevice(self.device):
@@ -404,17 +405,16 @@ class RenderPlan:
                 "last": _wp(self.last, wp.int32),
                 "counts": _wp(self.counts, wp.int64),
                 "ends": _wp(self.ends, wp.int64),
+                "tile_masks": _wp(self.tile_masks, wp.int64),
                 "depth_bits": wp.from_torch(o["depths"].view(torch.int32), dtype=wp.int32),
                 # Allocated by torch, like every buffer here: in order on torch's stream.
                 "ranges": _wp(torch.empty(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
             }
             w_out["records"] = None
             if opts.gather == "packed":
-                # Packed per-Gaussian records: written word by word by the packing kernel ([N, P]),
-                # gathered in 16-byte columns by the blending kernels ([N, P / 4] vec4).
-                words = torch.empty(n, record_width(c, opts.color_storage), **f32)
-                w_out["record_words"] = _wp(words, wp.float32)
-                w_out["records"] = _wp(words.view(n, words.shape[1] // 4, 4), wp.vec4)
+                # Packed per-Gaussian records, [N, P / 4] vec4 (P float32 words a row).
+                words = torch.empty(n, record_width(c, opts.color_storage) // 4, 4, **f32)
+                w_out["records"] = _wp(words, wp.vec4)
         self.w = {**w_in, **w_out}
         if g:
             self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
@@ -437,7 +437,7 @@ class RenderPlan:
         self._pack = None if opts.gather != "packed" else dict(
             kernel=pack_kernel(c, opts.color_storage), dim=n,
             inputs=[w["means2d"], w["conics"], w["opac_out"], w["depths"], w["color_table"]],
-            outputs=[w["record_words"]])
+            outputs=[w["records"]])
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
@@ -452,7 +452,7 @@ class RenderPlan:
             return
         wp.launch(binning.count_tiles, dim=self.n,
                   inputs=[w["means2d"], w["radii"], *self._overlap(), opts.tile_size, self.tiles_x, self.tiles_y],
-                  outputs=[w["counts"]])
+                  outputs=[w["counts"], w["tile_masks"]])
         wp.utils.array_scan(w["counts"], w["ends"], inclusive=True)
 
     def _overlap(self):
@@ -479,7 +479,7 @@ class RenderPlan:
             self.keys.fill_(self.n_tiles << 32)
         wp.launch(binning.emit_intersections, dim=self.n,
                   inputs=[w["means2d"], w["radii"], *self._overlap(), w["depth_bits"], w["counts"], w["ends"],
-                          opts.tile_size, self.tiles_x, self.tiles_y, self.capacity],
+                          w["tile_masks"], opts.tile_size, self.tiles_x, self.tiles_y, self.capacity],
                   outputs=[self.keys, self.values])
         wp.utils.radix_sort_pairs(self.keys, self.values, count, end_bit=32 + tile_bits)
         wp.launch(binning.tile_ranges, dim=count, inputs=[self.keys, count], outputs=[w["ranges"]])

@@ -31,14 +31,15 @@ def faint_scene(seed, **kwargs):
     return scene
 
 
-def tilted_needles(n=40, width=64, height=48):
-    """``n`` long thin Gaussians at 45° in the image plane: their radius squares cover many tiles the
-    needle never reaches."""
+def tilted_needles(n=40, width=64, height=48, lengths=(0.8, 0.8)):
+    """``n`` long thin Gaussians at 45° in the image plane, of lengths (scale along the needle) drawn
+    in ``lengths``: their radius squares cover many tiles the needle never reaches."""
     g = torch.Generator().manual_seed(7)
     means = torch.cat([(torch.rand(n, 2, generator=g) - 0.5) * 1.5, torch.full((n, 1), 4.0)], dim=1)
     angle = math.pi / 8  # quaternion of a 45° turn about the optical axis
     quats = torch.tensor([math.cos(angle), 0.0, 0.0, math.sin(angle)]).repeat(n, 1)
     scales = torch.tensor([0.8, 0.01, 0.01]).repeat(n, 1)
+    scales[:, 0] = lengths[0] + torch.rand(n, generator=g) * (lengths[1] - lengths[0])
     return hard_scene(means, quats=quats, scales=scales, opacities=torch.full((n,), 0.9), width=width,
                       height=height, K=torch.tensor([[40.0, 0, width / 2], [0, 40.0, height / 2], [0, 0, 1]]))
 
@@ -78,3 +79,20 @@ def test_tilted_needles_need_far_fewer_intersections():
     assert ellipse[2]["n_intersections"] <= 0.6 * rectangle[2]["n_intersections"], (
         ellipse[2]["n_intersections"], rectangle[2]["n_intersections"])
     assert_matches_reference(scene)
+
+
+def test_needles_past_the_tile_mask_bin_as_those_within_it():
+    # Rectangles of more than binning.MASK_TILES tiles are tested again when their keys are written,
+    # smaller ones read the count pass's bit mask: with lengths from 0.2 to 3 at tiles of 8 both
+    # kinds render here, and each must bin exactly the tiles the rectangle binning's image needs.
+    from securegs_warp.kernels.binning import MASK_TILES
+
+    scene = tilted_needles(n=60, width=160, height=120, lengths=(0.2, 3.0))
+    scene.kwargs["tile_size"] = 8
+    ellipse = render(scene, tile_overlap="ellipse")
+    rectangle = render(scene, tile_overlap="rectangle")
+    radii = ellipse[2]["radii"].float()
+    tiles = (2 * radii[:, 0] / 8 + 1) * (2 * radii[:, 1] / 8 + 1)  # about the rectangle's tiles
+    assert (tiles < MASK_TILES / 2).any() and (tiles > 2 * MASK_TILES).any()
+    assert torch.equal(ellipse[0], rectangle[0]) and torch.equal(ellipse[1], rectangle[1])
+    assert ellipse[2]["n_intersections"] <= 0.6 * rectangle[2]["n_intersections"]
