@@ -413,8 +413,8 @@ class RenderPlan:
             w_out["records"] = None
             if opts.gather == "packed":
                 # Packed per-Gaussian records, [N, P / 4] vec4 (P float32 words a row).
-                words = torch.empty(n, record_width(c, opts.color_storage) // 4, 4, **f32)
-                w_out["records"] = _wp(words, wp.vec4)
+                records = torch.empty(n, record_width(c, opts.color_storage) // 4, 4, **f32)
+                w_out["records"] = _wp(records, wp.vec4)
         self.w = {**w_in, **w_out}
         if g:
             self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
