@@ -128,6 +128,13 @@ def reaches_tile(e: Ellipse, tx: int, ty: int, tile_size: int) -> bool:
 MASK_TILES = 63
 
 
+@wp.func
+def masked(rect: wp.vec4i) -> bool:
+    """Whether a tile rectangle [x0, y0, x1, y1) is small enough for its ellipse tests to be kept as
+    a bit mask (the one rule both binning passes follow)."""
+    return (rect[2] - rect[0]) * (rect[3] - rect[1]) <= MASK_TILES
+
+
 @wp.kernel
 def count_tiles(
     means2d: wp.array(dtype=wp.vec2),
@@ -143,8 +150,7 @@ def count_tiles(
     masks: wp.array(dtype=wp.int64),
 ):
     """counts[i]: the tiles Gaussian i is binned to; with ``exact``, masks[i]: which tiles of its
-    rectangle (bit (ty − y0)·width + (tx − x0)); emit_intersections reads it for a rectangle of at
-    most MASK_TILES tiles."""
+    rectangle (bit (ty − y0)·width + (tx − x0)) where ``masked`` keeps them, else 0."""
     i = wp.tid()
     r = radii[i]
     n = wp.int64(0)
@@ -152,6 +158,7 @@ def count_tiles(
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
         if exact != 0:
             op = opacities[i]
+            keep = masked(rect)
             mask = wp.int64(0)
             if op >= alpha_min:
                 e = ellipse(means2d[i], conics[i], op, alpha_min)
@@ -160,7 +167,7 @@ def count_tiles(
                     for tx in range(rect[0], rect[2]):
                         if reaches_tile(e, tx, ty, tile_size):
                             n += wp.int64(1)
-                            if b < MASK_TILES:
+                            if keep:
                                 mask = mask | (wp.int64(1) << wp.int64(b))
                         b += 1
             masks[i] = mask
@@ -194,10 +201,10 @@ def emit_intersections(
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
         low = wp.int64(depth_bits[i]) & wp.int64(0xFFFFFFFF)
         k = ends[i] - counts[i]
-        masked = exact != 0 and (rect[2] - rect[0]) * (rect[3] - rect[1]) <= MASK_TILES
+        from_mask = exact != 0 and masked(rect)
         mask = wp.int64(0)
         e = Ellipse()
-        if masked:
+        if from_mask:
             mask = masks[i]
         elif exact != 0:
             e = ellipse(means2d[i], conics[i], opacities[i], alpha_min)
@@ -205,7 +212,7 @@ def emit_intersections(
         for ty in range(rect[1], rect[3]):
             for tx in range(rect[0], rect[2]):
                 hit = exact == 0
-                if masked:
+                if from_mask:
                     hit = ((mask >> wp.int64(b)) & wp.int64(1)) != wp.int64(0)
                 elif exact != 0:
                     hit = reaches_tile(e, tx, ty, tile_size)
