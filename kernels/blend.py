@@ -21,7 +21,7 @@ Accuracy-for-time variants (compile-time, see ``blend_kernels``): colours read f
 (half the bytes per Gaussian in global and shared memory; arithmetic stays float32 and the colour
 gradients are written in float32), and Warp's fast math.
 
-Packed records (``blend_kernels(..., packed=True)``, written by ``pack_kernel`` after projection):
+Packed records (``blend_kernels(..., packed=True)``, written by the projection; see ``records``):
 each batch is gathered with one ``tile_load_indexed`` of a per-Gaussian row instead of one per
 field. In Warp 1.19 each indexed load into shared memory is a register gather, a store and a block
 barrier (and, reloaded in a loop, one more barrier before the store), so the per-field gathers
@@ -34,8 +34,8 @@ from typing import Any
 
 import warp as wp
 
-# Element type of the colour table read by the blending kernels, by ``color_storage`` name.
-COLOR_STORAGES = {"float32": wp.float32, "float16": wp.float16}
+from .records import (COLOR_STORAGES, R_COLOR, R_DEPTH, colors_in_record, record_geometry, record_width,
+                      record_word)
 
 
 @wp.func_native("""
@@ -101,82 +101,6 @@ _XY, _CONIC, _OPACITY, _COLOR = 0, 2, 5, 6
 # Upper bound on the shared memory of one batch (bytes), to pick the batch size for wide colours.
 _BATCH_SHARED_BYTES = 24 * 1024
 
-# Packed record of one Gaussian (float32 words): x, y, conic a, b, c, opacity, depth, then its
-# colours when they are float32, padded to a multiple of 4 words so that rows are 16-byte aligned.
-# float16 colours stay in their own [N, C] table (a second indexed load per batch): widened into
-# the float32 record they would take twice the bytes, which float16 storage exists to save.
-_R_XY, _R_CONIC, _R_OPACITY, _R_DEPTH, _R_COLOR = 0, 2, 5, 6, 7
-
-
-def colors_in_record(color_storage: str) -> bool:
-    """Whether the packed record holds the colours (float32 storage) or they stay in their table."""
-    return color_storage == "float32"
-
-
-def record_width(channels: int, color_storage: str) -> int:
-    """float32 words per packed record: ``_R_COLOR`` (+ C colours when in the record), rounded up to 4."""
-    words = _R_COLOR + (channels if colors_in_record(color_storage) else 0)
-    return (words + 3) // 4 * 4
-
-
-@wp.func
-def record_word(src: Any, row: int, k: int):
-    """Word ``k`` of row ``row`` of packed records: the [N, P / 4] vec4 table or a batch of it in
-    shared memory. vec4 columns make the batch gather 16 bytes a load instead of 4."""
-    return src[row, k // 4][k % 4]
-
-
-@wp.func
-def record_geometry(src: Any, row: int):
-    """(mean2d, conic, opacity) of row ``row`` of packed records (see ``record_word``)."""
-    return (wp.vec2(record_word(src, row, _R_XY), record_word(src, row, _R_XY + 1)),
-            wp.vec3(record_word(src, row, _R_CONIC), record_word(src, row, _R_CONIC + 1),
-                    record_word(src, row, _R_CONIC + 2)),
-            record_word(src, row, _R_OPACITY))
-
-
-@functools.lru_cache(maxsize=None)
-def pack_kernel(channels: int, color_storage: str):
-    """Kernel writing each Gaussian's packed record into ``records`` [N, record_width / 4] vec4 (the
-    table the blending kernels gather) from the projection's outputs (and the colours when
-    ``colors_in_record``), launched with dim=N. A row is written as whole vec4s: word by word, a
-    thread's stores are 4 bytes each at a stride of the row's width across a warp."""
-    C = channels
-    WITH_COLORS = colors_in_record(color_storage)
-    ColorT = COLOR_STORAGES[color_storage]
-    W = record_width(channels, color_storage)
-    Row = wp.types.vector(length=W, dtype=wp.float32)
-
-    def pack(
-        means2d: wp.array(dtype=wp.vec2),
-        conics: wp.array(dtype=wp.vec3),
-        opacities: wp.array(dtype=float),
-        depths: wp.array(dtype=float),
-        colors: wp.array2d(dtype=ColorT),
-        records: wp.array2d(dtype=wp.vec4),
-    ):
-        i = wp.tid()
-        xy = means2d[i]
-        cn = conics[i]
-        # Zero-initialised: the padding is gathered with the rest of the row.
-        r = Row()
-        r[_R_XY] = xy[0]
-        r[_R_XY + 1] = xy[1]
-        r[_R_CONIC] = cn[0]
-        r[_R_CONIC + 1] = cn[1]
-        r[_R_CONIC + 2] = cn[2]
-        r[_R_OPACITY] = opacities[i]
-        r[_R_DEPTH] = depths[i]
-        if wp.static(WITH_COLORS):
-            for c in range(C):
-                r[_R_COLOR + c] = float(colors[i, c])
-        for q in range(W // 4):
-            records[i, q] = wp.vec4(r[4 * q], r[4 * q + 1], r[4 * q + 2], r[4 * q + 3])
-
-    pack.__name__ = pack.__qualname__ = f"pack_records_c{C}_{color_storage}"
-    return wp.kernel(pack, enable_backward=False, module="unique")
-
-
 # Pixels a thread of the backward blending kernel may walk (``blend_kernels``' backward_pixels).
 BACKWARD_PIXELS = (1, 2, 4)
 
@@ -234,7 +158,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     ``max_registers``: registers per thread the CUDA backward may use (``__maxnreg__``; 0: the
     compiler's choice). Fewer registers let more blocks share a multiprocessor, at the risk of
     spilling to local memory; the CPU ignores it.
-    ``packed``: read each Gaussian from its row of ``records`` [N, record_width / 4] vec4 (``pack_kernel``),
+    ``packed``: read each Gaussian from its row of ``records`` [N, record_width / 4] vec4 (``records``),
     gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
     (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
     not packed) and read the per-field arrays only for what the record lacks.
@@ -372,14 +296,14 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         for c in range(C):
                             # float(): widen a float16 colour (the identity for float32).
                             if wp.static(REC_COLOR):
-                                acc[c] = acc[c] + record_word(rec, row, _R_COLOR + c) * w
+                                acc[c] = acc[c] + record_word(rec, row, R_COLOR + c) * w
                             elif wp.static(COOP):
                                 acc[c] = acc[c] + float(col_t[j, c]) * w
                             else:
                                 acc[c] = acc[c] + float(colors[gid, c]) * w
                         if wp.static(DEPTH == 1):
                             if wp.static(PACKED):
-                                acc_depth += record_word(rec, row, _R_DEPTH) * w
+                                acc_depth += record_word(rec, row, R_DEPTH) * w
                             elif wp.static(COOP):
                                 acc_depth += dep_t[j] * w
                             else:
@@ -538,7 +462,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                                 d_alpha = float(0.0)
                                 for c in range(C):
                                     if wp.static(REC_COLOR):
-                                        col = record_word(rec, row, _R_COLOR + c)
+                                        col = record_word(rec, row, R_COLOR + c)
                                     elif wp.static(COOP):
                                         col = float(col_t[j, c])
                                     else:
@@ -548,7 +472,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                                     buf[p * C + c] = buf[p * C + c] + col * w
                                 if wp.static(DEPTH == 1):
                                     if wp.static(PACKED):
-                                        dep = record_word(rec, row, _R_DEPTH)
+                                        dep = record_word(rec, row, R_DEPTH)
                                     elif wp.static(COOP):
                                         dep = dep_t[j]
                                     else:

@@ -15,6 +15,8 @@ import functools
 
 import warp as wp
 
+from .records import COLOR_STORAGES, R_COLOR, R_CONIC, R_DEPTH, R_OPACITY, R_XY, colors_in_record, record_width
+
 # Radius rules (compile-time): how far from its centre a 2D Gaussian is allowed to reach.
 RADIUS_RULES = ("opacity_aware", "3sigma", "tight")
 _OPACITY_AWARE, _THREE_SIGMA, _TIGHT = 0, 1, 2
@@ -39,7 +41,8 @@ def quat_to_rotmat(q: wp.vec4) -> wp.mat33:
 
 
 @functools.lru_cache(maxsize=None)
-def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
+def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, record_channels: int = 0,
+                      color_storage: str = "float32"):
     """The projection kernel specialised for one option set.
 
     antialiased: multiply opacity by the Mip-Splatting compensation sqrt(det(Σ)/det(Σ + εI)).
@@ -49,10 +52,21 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
     fast_math: compile with Warp's ``fast_math`` module option (CUDA: nvcc ``--use_fast_math``,
         approximate exp/log/sqrt/division and flushed denormals; the float64 camera transform is
         unaffected). Warp 1.19 does not pass it to its CPU compiler: there it changes nothing.
+    record_channels: > 0: also write each visible Gaussian's packed record (``records``) into
+        ``records`` [N, record_width / 4] vec4, with its ``record_channels`` colours from ``colors``
+        [N, C] of ``color_storage`` when ``colors_in_record``; 0: neither is read (pass None). Written
+        here rather than by a kernel of its own, which read back the outputs just written (a launch
+        and a pass over N rows more). The records take no gradient.
     """
     if radius_rule not in RADIUS_RULES:
         raise ValueError(f"radius_rule must be one of {RADIUS_RULES}, got {radius_rule!r}")
     rule = RADIUS_RULES.index(radius_rule)
+    PACK = record_channels > 0
+    C = max(record_channels, 1)
+    ColorT = COLOR_STORAGES[color_storage]
+    WITH_COLORS = PACK and colors_in_record(color_storage)
+    W = record_width(C, color_storage)
+    Row = wp.types.vector(length=W, dtype=wp.float32)
 
     def project(
         means: wp.array(dtype=wp.vec3),
@@ -61,6 +75,7 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
         opacities: wp.array(dtype=float),
         viewmat: wp.array(dtype=float),
         intrinsics: wp.array(dtype=float),
+        colors: wp.array2d(dtype=ColorT),
         width: int,
         height: int,
         near: float,
@@ -73,6 +88,7 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
         depths: wp.array(dtype=float),
         radii: wp.array(dtype=wp.vec2i),
         opacities_out: wp.array(dtype=float),
+        records: wp.array2d(dtype=wp.vec4),
     ):
         i = wp.tid()
         # viewmat: row-major world-to-camera 4×4; intrinsics: row-major K (3×3). Both are read on the
@@ -167,16 +183,34 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool):
                 rx = 0.0
                 ry = 0.0
             if rx > 0.0:
+                conic = wp.vec3(b11 / det, -c01 / det, b00 / det)
                 means2d[i] = wp.vec2(u, v)
-                conics[i] = wp.vec3(b11 / det, -c01 / det, b00 / det)
+                conics[i] = conic
                 depths[i] = z
                 opacities_out[i] = opacity
+                if wp.static(PACK):
+                    # Zero-initialised: the padding is gathered with the rest of the row. Whole vec4
+                    # stores: word by word, a thread's stores are 4 bytes at the row's stride.
+                    r = Row()
+                    r[R_XY] = u
+                    r[R_XY + 1] = v
+                    r[R_CONIC] = conic[0]
+                    r[R_CONIC + 1] = conic[1]
+                    r[R_CONIC + 2] = conic[2]
+                    r[R_OPACITY] = opacity
+                    r[R_DEPTH] = z
+                    if wp.static(WITH_COLORS):
+                        for c in range(C):
+                            r[R_COLOR + c] = float(colors[i, c])
+                    for q in range(W // 4):
+                        records[i, q] = wp.vec4(r[4 * q], r[4 * q + 1], r[4 * q + 2], r[4 * q + 3])
         if rx > 0.0:
             radii[i] = wp.vec2i(int(rx), int(ry))
         else:
             radii[i] = wp.vec2i(0, 0)
 
-    tag = f"{'aa' if antialiased else 'classic'}_{radius_rule}{'_fast' if fast_math else ''}"
+    tag = (f"{'aa' if antialiased else 'classic'}_{radius_rule}{'_fast' if fast_math else ''}"
+           f"{f'_rec{record_channels}_{color_storage}' if PACK else ''}")
     project.__name__ = project.__qualname__ = f"project_{tag}"
     # fast_math is a module option: each variant gets its own module.
     return wp.kernel(project, module="unique", module_options={"fast_math": fast_math})

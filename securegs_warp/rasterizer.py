@@ -15,8 +15,8 @@ import torch
 import warp as wp
 
 from .kernels import binning
-from .kernels.blend import (COLOR_STORAGES, CPU_BATCH, backward_threads, batch_size, blend_kernels,
-                            check_backward_pixels, pack_kernel, record_width)
+from .kernels.blend import CPU_BATCH, backward_threads, batch_size, blend_kernels, check_backward_pixels
+from .kernels.records import COLOR_STORAGES, record_width
 from .kernels.projection import RADIUS_RULES, projection_kernel
 from .warp_scope import WarpScope
 
@@ -98,13 +98,13 @@ class RasterOptions:
     # scripts/bench_rasterizer.py --variant px1:backward_pixels=1 compares them).
     backward_pixels: int = 2
     # How the blending kernels gather each batch of Gaussians: one indexed load per field (means2d,
-    # conics, opacities, colours, depths: "fields"), or one of a per-Gaussian record that a small
-    # kernel packs after projection ("packed": x, y, conic, opacity, depth and float32 colours in
+    # conics, opacities, colours, depths: "fields"), or one of a per-Gaussian record that the
+    # projection writes beside its outputs ("packed": x, y, conic, opacity, depth and float32 colours in
     # one 16-byte-aligned float32 row; float16 colours keep their own table). On CUDA each indexed
     # load into shared memory ends in a block barrier, so "packed" pays one global-memory latency
     # per batch where "fields" pays four or five (scripts/kernel_registers.py counts the barriers),
     # for N × 12 float32 words more memory (RGB; 4·⌈(7+C)/4⌉ for C float32 colours, 8 with float16
-    # colours) and one more launch. Bit-identical images and gradients on the CPU; on CUDA the
+    # colours). Bit-identical images and gradients on the CPU; on CUDA the
     # gradients' atomic sums add in a varying order for either gather, so the two agree to float
     # rounding. scripts/bench_rasterizer.py --variant fields:gather=fields compares them. "packed" by default:
     # faster in both blending kernels on an H100 (docs/results.md, "Packed Gaussian records").
@@ -421,11 +421,14 @@ class RenderPlan:
                 wp.to_torch(self.w["colors_grad"]), wp.to_torch(self.w["background"].grad)]
             self.means2d_grad = wp.to_torch(self.w["means2d"].grad)
         w = self.w
+        packed = opts.gather == "packed"
         self._projection = dict(
-            kernel=projection_kernel(opts.antialiased, opts.radius_rule, opts.fast_math), dim=n,
-            inputs=[w["means"], w["quats"], w["scales"], w["opacities"], w["viewmat"], w["K"], width, height,
+            kernel=projection_kernel(opts.antialiased, opts.radius_rule, opts.fast_math,
+                                     record_channels=c if packed else 0, color_storage=opts.color_storage), dim=n,
+            inputs=[w["means"], w["quats"], w["scales"], w["opacities"], w["viewmat"], w["K"],
+                    w["color_table"] if packed else None, width, height,
                     opts.near_plane, opts.far_plane, opts.eps2d, opts.alpha_min, opts.radius_clip],
-            outputs=[w["means2d"], w["conics"], w["depths"], w["radii"], w["opac_out"]],
+            outputs=[w["means2d"], w["conics"], w["depths"], w["radii"], w["opac_out"], w["records"]],
         )
         self.keys = self.values = None
         with_depth = opts.render_depth is not None
@@ -434,10 +437,6 @@ class RenderPlan:
         self._bwd_threads = backward_threads(opts.tile_size, opts.backward_pixels)
         self._bwd_block = min(opts.block(opts.backward_block), self._bwd_threads)
         self._blend = blend_kernels_for(opts, c, with_depth, cooperative)
-        self._pack = None if opts.gather != "packed" else dict(
-            kernel=pack_kernel(c, opts.color_storage), dim=n,
-            inputs=[w["means2d"], w["conics"], w["opac_out"], w["depths"], w["color_table"]],
-            outputs=[w["records"]])
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
@@ -491,8 +490,6 @@ class RenderPlan:
 
     def blend(self) -> None:
         w, ts = self.w, self.opts.tile_size
-        if self._pack is not None and self.n:
-            wp.launch(**self._pack)
         wp.launch(self._blend[0], dim=(self.n_tiles, ts * ts), block_dim=self._fwd_block,
                   inputs=self._blend_args() + [self.opts.transmittance_min],
                   outputs=[w["image"], w["alpha"], w["depth"], w["transmittance"], w["last"]])
