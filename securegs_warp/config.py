@@ -109,6 +109,7 @@ class TrainConfig:
     mlp_featurebank_lr: tuple = (0.01, 0.00001)
     appearance_lr: tuple = (0.05, 0.0005)
     mlp_offset_lr: tuple = (0.004, 0.0004)  # SecureGS's private offset predictor F_o† (no paper value)
+    latent_lr: tuple = (0.0075, 0.00075)  # SecureGS's private latent grid (starts at feature_lr; no paper value)
     densify: bool = True
 
     def __post_init__(self):
@@ -191,7 +192,7 @@ class StegaNeRFConfig:
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
 # the hidden object (the key keeps the radius that takes them in), through MLPs `width` wide
 # (docs/results.md, "Geometric security", measures them).
-BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1}
+BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1, "latent": 0}
 # What ``robust`` "auto" trains a hidden object in the cover mode against, and the bit margin it
 # was measured with: the payload then survives random pruning, feature noise and purify for no
 # training time (docs/results.md, "Robust training by default").
@@ -256,6 +257,10 @@ class SecureConfig:
         hidden view is background in the target, and in the render up to the tails of splats near
         the box's faces, which the crop leaves untrained. Off by default: what it saves in time it
         may cost in hidden fidelity (docs/results.md, "the hidden crop").
+    hidden_latent: in the box frame, the resolution r of the key's latent grid (``secure.heads.LatentGrid``:
+        r³ private features over the box's neighbourhood, added to each serving anchor's public
+        feature before the private heads decode it; 0: none). None: BOX_FRAME_DEFAULTS in the box
+        frame; the anchor frame has none.
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
@@ -302,6 +307,7 @@ class SecureConfig:
     hidden_offsets: int | None = None
     hidden_width: int | None = None
     hidden_anchors: int | None = None
+    hidden_latent: int | None = None
     hidden_encoding: int | None = None
     hidden_depth: int | None = None
     hidden_crop: bool = False
@@ -367,7 +373,7 @@ class SecureConfig:
         density ``mode`` (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
         given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors,
-                 "encoding": self.hidden_encoding, "depth": self.hidden_depth}
+                 "encoding": self.hidden_encoding, "depth": self.hidden_depth, "latent": self.hidden_latent}
         # The anchor frame leaves what is not given to PrivateHeads' own defaults (the public k and d).
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {}
         return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None}}
@@ -382,6 +388,8 @@ class SecureConfig:
             raise ValueError(f"hidden_finish must be >= 0 (a fraction of the iterations), got {self.hidden_finish}")
         if self.hidden_encoding is not None and self.hidden_encoding < 0:
             raise ValueError(f"hidden_encoding must be >= 0, got {self.hidden_encoding}")
+        if self.hidden_latent is not None and (self.hidden_latent < 0 or self.hidden_latent == 1):
+            raise ValueError(f"hidden_latent must be 0 (none) or a grid resolution >= 2, got {self.hidden_latent}")
         if self.hidden_weight is not None and not self.hidden_weight >= 0.0:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {self.hidden_weight}")
         if self.bit_margin is not None and not self.bit_margin > 0.0:

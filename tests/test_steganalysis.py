@@ -102,10 +102,13 @@ def test_box_frame_options_are_in_the_key_and_reveal_rebuilds_them(tmp_path):
     out = tmp_path / "c"
     assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
                  "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40",
-                 "--hidden-encoding", "2", "--hidden-depth", "2", *TINY]) == 0
+                 "--hidden-encoding", "2", "--hidden-depth", "2", "--hidden-latent", "3", *TINY]) == 0
     model, meta = open_container(out / "public", out / "key.safetensors")
     assert meta["heads"]["frame"] == "box" and (meta["heads"]["n_hidden"], meta["heads"]["width"]) == (3, 8)
-    assert (meta["heads"]["encoding"], meta["heads"]["depth"]) == (2, 2)
+    assert (meta["heads"]["encoding"], meta["heads"]["depth"], meta["heads"]["latent"]) == (2, 2, 3)
+    # The latent grid trained (it starts at zero) and came back from the key.
+    grid = model.private.latent_grid.grid
+    assert grid.shape == (1, model.private.feat_dim, 3, 3, 3) and grid.abs().max() > 0
     assert model.private.serving == 40 and model.private.box[1].min() > 0
     # F_o† reads the feature and 3 (1 + 2·2) encoded coordinates, through two hidden layers.
     linears = [m for m in model.private.offset_mlp if isinstance(m, torch.nn.Linear)]
@@ -124,6 +127,31 @@ def test_a_key_written_before_the_encoding_and_depth_rebuilds_the_one_layer_offs
         metadata.pop(name)
     private = PrivateHeads(ScaffoldHeads(8, 2), **metadata)
     assert [m.in_features for m in private.offset_mlp if isinstance(m, torch.nn.Linear)] == [8 + 3, 8]
+
+
+def test_the_latent_grid_reads_contracted_box_positions_and_starts_as_no_grid():
+    from securegs_warp.model import ScaffoldHeads
+    from securegs_warp.secure.heads import PrivateHeads
+
+    private = PrivateHeads(ScaffoldHeads(2, 2), frame="box", n_hidden=2, width=8, latent=3)
+    private.set_box([1.0, 1.0, 1.0], [3.0, 5.0, 7.0])  # centre (2, 3, 4), half-extent (1, 2, 3)
+    feat = torch.randn(4, 2)
+    xyz = torch.tensor([[2.0, 3.0, 4.0], [3.0, 3.0, 4.0], [2.0, 3.0, 1e6], [2.0, -1e6, 4.0]])
+    assert torch.equal(private.latent(xyz, feat), feat)  # zero at the start: the features themselves
+    with torch.no_grad():
+        # Channel 0 holds the x cell index, channel 1 the z cell index (grid axes: z, y, x).
+        index = torch.arange(3.0)
+        private.latent_grid.grid[0, 0] = index[None, None, :]
+        private.latent_grid.grid[0, 1] = index[:, None, None]
+    latent = private.latent(xyz, torch.zeros(4, 2))
+    # The centre reads the middle cell; the box's face (p = 1) lies halfway out (u = p / (1 + |p|) = 0.5,
+    # cell 1.5); far outside reaches the border cells, axis by axis.
+    expected = torch.tensor([[1.0, 1.0], [1.5, 1.0], [1.0, 2.0], [1.0, 1.0]])
+    assert (latent - expected).abs().max() < 1e-4, latent
+    with pytest.raises(ValueError, match="frame='box'"):
+        PrivateHeads(ScaffoldHeads(2, 2), latent=3)
+    with pytest.raises(ValueError, match="hidden_latent"):
+        SecureConfig(hidden_latent=1)
 
 
 def test_the_box_encoding_holds_octaves_of_the_position():

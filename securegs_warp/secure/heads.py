@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from ..model import ScaffoldHeads, make_mlp
@@ -18,6 +19,33 @@ FRAMES = ("anchor", "box")
 # Inside the box every anchor is at distance 0 from it; this share of the distance to the box's
 # centre orders them without moving anyone outside by more than a thousandth of its distance.
 INSIDE_TIE_BREAK = 1e-3
+
+
+class LatentGrid(nn.Module):
+    """A key's private latent: a dense grid of features [d, r, r, r] over the box's neighbourhood,
+    read trilinearly at each anchor's position and added to the anchor's public feature before the
+    private heads decode it (``feature_source`` of ``decode_rows``). Without it the hidden
+    Gaussians' colours, opacities and shapes are functions of the public features alone, which the
+    cover's loss shapes; the grid gives the key free parameters near the object without putting any
+    in the release (d·r³ floats in the key). Positions are read in the box's frame contracted per
+    axis, u = p / (1 + |p|): the box's inside spans the middle half of the grid and the serving
+    anchors outside it keep distinct cells instead of piling onto the border. Zero at the start:
+    the decoding begins as it would without it."""
+
+    def __init__(self, feat_dim: int, resolution: int):
+        super().__init__()
+        if resolution < 2:
+            raise ValueError(f"a latent grid needs a resolution of at least 2, got {resolution}")
+        self.resolution = int(resolution)
+        self.grid = nn.Parameter(torch.zeros(1, feat_dim, resolution, resolution, resolution))
+
+    def forward(self, where: torch.Tensor) -> torch.Tensor:
+        """[N, d]: the latent at box-frame positions where [N, 3] (the box spans [-1, 1]³)."""
+        u = where / (1.0 + where.abs())
+        # grid_sample reads (x, y, z) against the grid's (W, H, D) axes.
+        sampled = F.grid_sample(self.grid, u[None, :, None, None, :], mode="bilinear", padding_mode="border",
+                                align_corners=True)
+        return sampled[0, :, :, 0, 0].t()
 
 
 class PrivateHeads(nn.Module):
@@ -52,6 +80,8 @@ class PrivateHeads(nn.Module):
         coordinates gives smooth functions of position; the octaves let neighbouring anchors place
         their Gaussians independently, which fine detail needs.
     depth: the number of hidden layers of F_o† (1: Scaffold-GS's Linear, ReLU, Linear).
+    latent: in the box frame, the resolution of a ``LatentGrid`` whose value at each anchor's
+        position the private heads add to its feature (0: none; the features alone).
     serving: in the box frame, how many anchors, nearest the box first, decode hidden Gaussians (0:
         every anchor that the view shows). Training keeps ``serving_radius`` (a buffer in the units of
         ``box_distance``, saved in the key) just beyond the serving-th nearest anchor
@@ -64,7 +94,7 @@ class PrivateHeads(nn.Module):
                  bit_cell: float | None = None,
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0,
-                 encoding: int = 0, depth: int = 1):
+                 encoding: int = 0, depth: int = 1, latent: int = 0):
         super().__init__()
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
@@ -74,6 +104,9 @@ class PrivateHeads(nn.Module):
             raise ValueError(f"encoding must be >= 0 and depth >= 1, got {encoding} and {depth}")
         if encoding and frame != "box":
             raise ValueError("encoding applies to the box frame's positions: it needs frame='box'")
+        if latent and (frame != "box" or not hidden):
+            raise ValueError("a latent grid lies over the box frame's positions and feeds the hidden decoder: "
+                             "it needs frame='box' and hidden=True")
         d = public.feat_dim
         k = public.n_offsets if n_hidden is None else int(n_hidden)
         w = d if width is None else int(width)
@@ -85,6 +118,7 @@ class PrivateHeads(nn.Module):
                                      add_color_dist=public.add_color_dist, width=w) if hidden else None
         self.offset_mlp = make_mlp(d + 3 * (1 + 2 * self.encoding), w, 3 * k, depth=self.depth) \
             if hidden and offsets else None
+        self.latent_grid = LatentGrid(d, latent) if latent else None
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
@@ -108,11 +142,25 @@ class PrivateHeads(nn.Module):
         """World-space displacements [Nv, k_hid, 3] of the hidden Gaussians of the decoded anchors."""
         if self.frame == "box":
             centre, half = self.box[0], self.box[1]
-            where = (inputs.xyz.detach() - centre) / half
+            where = self.box_position(inputs.xyz)
             raw = self.offset_mlp(torch.cat([inputs.feat, self.encode(where)], dim=1)).view(-1, self.n_offsets, 3)
             return centre + half * torch.tanh(raw) - inputs.xyz[:, None, :].detach()
         raw = self.offset_mlp(torch.cat([inputs.feat, inputs.ob_view], dim=1)).view(-1, self.n_offsets, 3)
         return raw * inputs.scaling[:, None, :3] if self.scale_offsets else raw
+
+    @property
+    def latent(self):
+        """The ``FeatureSource`` of the hidden decoding: the public features plus the latent grid's
+        value at each anchor (None without a grid)."""
+        return None if self.latent_grid is None else self._with_latent
+
+    def _with_latent(self, xyz: torch.Tensor, feat: torch.Tensor) -> torch.Tensor:
+        return feat + self.latent_grid(self.box_position(xyz))
+
+    def box_position(self, xyz: torch.Tensor) -> torch.Tensor:
+        """[N, 3]: anchor positions [N, 3] in the box's frame (the box spans [-1, 1]³); no gradient
+        to the positions."""
+        return (xyz.detach() - self.box[0]) / self.box[1]
 
     def encode(self, where: torch.Tensor) -> torch.Tensor:
         """[N, 3(1 + 2L)]: box positions [N, 3] and their L octaves of sines and cosines."""
@@ -196,6 +244,8 @@ class PrivateHeads(nn.Module):
         parts = dict(self.decoder.named_mlps()) if self.decoder is not None else {}
         if self.offset_mlp is not None:
             parts["mlp_offset"] = self.offset_mlp
+        if self.latent_grid is not None:
+            parts["latent"] = self.latent_grid
         return parts
 
     def describe(self) -> dict:
@@ -204,4 +254,5 @@ class PrivateHeads(nn.Module):
                                            "bit_cell": self.bits.cell}
         return {**bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
                 "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
-                "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth}
+                "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth,
+                "latent": 0 if self.latent_grid is None else self.latent_grid.resolution}
