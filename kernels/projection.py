@@ -68,6 +68,37 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
     W = record_width(C, color_storage)
     Row = wp.types.vector(length=W, dtype=wp.float32)
 
+    @wp.func
+    def write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int, xy: wp.vec2,
+                     conic: wp.vec3, opacity: float, depth: float):
+        """Row i of ``records``: zero-initialised (the padding is gathered with the rest of the
+        row), stored as whole vec4s (word by word, a thread's stores are 4 bytes at the row's stride)."""
+        r = Row()
+        r[R_XY] = xy[0]
+        r[R_XY + 1] = xy[1]
+        r[R_CONIC] = conic[0]
+        r[R_CONIC + 1] = conic[1]
+        r[R_CONIC + 2] = conic[2]
+        r[R_OPACITY] = opacity
+        r[R_DEPTH] = depth
+        if wp.static(WITH_COLORS):
+            for c in range(C):
+                r[R_COLOR + c] = float(colors[i, c])
+        for q in range(W // 4):
+            records[i, q] = wp.vec4(r[4 * q], r[4 * q + 1], r[4 * q + 2], r[4 * q + 3])
+
+    # The records take no gradient, and the generated adjoint kernel need not write them again
+    # when it replays the forward: both are no-ops, so the record costs the backward nothing.
+    @wp.func_grad(write_record)
+    def adj_write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int,
+                         xy: wp.vec2, conic: wp.vec3, opacity: float, depth: float):
+        pass
+
+    @wp.func_replay(write_record)
+    def replay_write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int,
+                            xy: wp.vec2, conic: wp.vec3, opacity: float, depth: float):
+        pass
+
     def project(
         means: wp.array(dtype=wp.vec3),
         quats: wp.array(dtype=wp.vec4),
@@ -189,21 +220,7 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
                 depths[i] = z
                 opacities_out[i] = opacity
                 if wp.static(PACK):
-                    # Zero-initialised: the padding is gathered with the rest of the row. Whole vec4
-                    # stores: word by word, a thread's stores are 4 bytes at the row's stride.
-                    r = Row()
-                    r[R_XY] = u
-                    r[R_XY + 1] = v
-                    r[R_CONIC] = conic[0]
-                    r[R_CONIC + 1] = conic[1]
-                    r[R_CONIC + 2] = conic[2]
-                    r[R_OPACITY] = opacity
-                    r[R_DEPTH] = z
-                    if wp.static(WITH_COLORS):
-                        for c in range(C):
-                            r[R_COLOR + c] = float(colors[i, c])
-                    for q in range(W // 4):
-                        records[i, q] = wp.vec4(r[4 * q], r[4 * q + 1], r[4 * q + 2], r[4 * q + 3])
+                    write_record(records, colors, i, wp.vec2(u, v), conic, opacity, z)
         if rx > 0.0:
             radii[i] = wp.vec2i(int(rx), int(ry))
         else:
