@@ -137,13 +137,13 @@ def test_the_latent_grid_reads_contracted_box_positions_and_starts_as_no_grid():
     private.set_box([1.0, 1.0, 1.0], [3.0, 5.0, 7.0])  # centre (2, 3, 4), half-extent (1, 2, 3)
     feat = torch.randn(4, 2)
     xyz = torch.tensor([[2.0, 3.0, 4.0], [3.0, 3.0, 4.0], [2.0, 3.0, 1e6], [2.0, -1e6, 4.0]])
-    assert torch.equal(private.latent(xyz, feat), feat)  # zero at the start: the features themselves
+    assert torch.equal(private.feature_source(xyz, feat), feat)  # zero at the start: the features themselves
     with torch.no_grad():
         # Channel 0 holds the x cell index, channel 1 the z cell index (grid axes: z, y, x).
         index = torch.arange(3.0)
         private.latent_grid.grid[0, 0] = index[None, None, :]
         private.latent_grid.grid[0, 1] = index[:, None, None]
-    latent = private.latent(xyz, torch.zeros(4, 2))
+    latent = private.feature_source(xyz, torch.zeros(4, 2))
     # The centre reads the middle cell; the box's face (p = 1) lies halfway out (u = p / (1 + |p|) = 0.5,
     # cell 1.5); far outside reaches the border cells, axis by axis.
     expected = torch.tensor([[1.0, 1.0], [1.5, 1.0], [1.0, 2.0], [1.0, 1.0]])

@@ -52,7 +52,7 @@ class _Rows(nn.Module):
 
     def forward(self, xyz, feat, log_scaling, centre):
         return decode_rows(self.private.decoder, self.private.hidden_offsets, xyz, feat, log_scaling, centre,
-                           feature_source=self.private.latent)
+                           feature_source=self.private.feature_source)
 
 
 class _Graph:
@@ -87,7 +87,7 @@ class CapturedRows:
         if (xyz.requires_grad or (graph is not None and graph.busy)
                 or any(p.grad is not None for p in sources[:-1])):
             return decode_rows(self.private.decoder, self.private.hidden_offsets, xyz, feat, log_scaling, centre,
-                               feature_source=self.private.latent)
+                               feature_source=self.private.feature_source)
         if graph is None or len(graph.sources) != len(sources) or any(a is not b for a, b in zip(graph.sources, sources)):
             samples = (xyz.detach().clone(), feat.detach().clone().requires_grad_(feat.requires_grad),
                        log_scaling.detach().clone().requires_grad_(log_scaling.requires_grad), centre.detach().clone())

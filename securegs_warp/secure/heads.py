@@ -149,7 +149,7 @@ class PrivateHeads(nn.Module):
         return raw * inputs.scaling[:, None, :3] if self.scale_offsets else raw
 
     @property
-    def latent(self):
+    def feature_source(self):
         """The ``FeatureSource`` of the hidden decoding: the public features plus the latent grid's
         value at each anchor (None without a grid)."""
         return None if self.latent_grid is None else self._with_latent

@@ -73,7 +73,7 @@ class SecureModel(ScaffoldModel):
         anchors = self.anchors if anchors is None else anchors
         mask, index, keep = self._decoding_rows(private, anchors, camera, visible)
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
-                           offset_source=source, feature_source=private.latent, feature_grad=feature_grad,
+                           offset_source=source, feature_source=private.feature_source, feature_grad=feature_grad,
                            scaling_grad=scaling_grad,
                            anchor_mask=mask, anchor_index=index, rows=rows, compact=compact, keep=keep)
 
