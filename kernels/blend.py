@@ -21,7 +21,7 @@ Accuracy-for-time variants (compile-time, see ``blend_kernels``): colours read f
 (half the bytes per Gaussian in global and shared memory; arithmetic stays float32 and the colour
 gradients are written in float32), and Warp's fast math.
 
-Packed records (``blend_kernels(..., packed=True)``, written by the projection; see ``records``):
+Packed records (``blend_kernels(..., packed=True)``, written by the projection; layout in ``kernels/records.py``):
 each batch is gathered with one ``tile_load_indexed`` of a per-Gaussian row instead of one per
 field. In Warp 1.19 each indexed load into shared memory is a register gather, a store and a block
 barrier (and, reloaded in a loop, one more barrier before the store), so the per-field gathers
@@ -158,7 +158,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     ``max_registers``: registers per thread the CUDA backward may use (``__maxnreg__``; 0: the
     compiler's choice). Fewer registers let more blocks share a multiprocessor, at the risk of
     spilling to local memory; the CPU ignores it.
-    ``packed``: read each Gaussian from its row of ``records`` [N, record_width / 4] vec4 (``records``),
+    ``packed``: read each Gaussian from its row of ``records`` [N, record_width / 4] vec4 (``kernels/records.py``),
     gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
     (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
     not packed) and read the per-field arrays only for what the record lacks.

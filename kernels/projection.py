@@ -52,9 +52,10 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
     fast_math: compile with Warp's ``fast_math`` module option (CUDA: nvcc ``--use_fast_math``,
         approximate exp/log/sqrt/division and flushed denormals; the float64 camera transform is
         unaffected). Warp 1.19 does not pass it to its CPU compiler: there it changes nothing.
-    record_channels: > 0: also write each visible Gaussian's packed record (``records``) into
-        ``records`` [N, record_width / 4] vec4, with its ``record_channels`` colours from ``colors``
-        [N, C] of ``color_storage`` when ``colors_in_record``; 0: neither is read (pass None). Written
+    record_channels: > 0: also write each visible Gaussian's packed record (layout in
+        ``kernels/records.py``) into ``records`` [N, record_width / 4] vec4, with its
+        ``record_channels`` colours from ``colors`` [N, C] of ``color_storage`` when
+        ``colors_in_record``; 0: neither array is used (pass None for both). Written
         here rather than by a kernel of its own, which read back the outputs just written (a launch
         and a pass over N rows more). The records take no gradient.
     """

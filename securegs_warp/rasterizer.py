@@ -424,7 +424,8 @@ class RenderPlan:
         packed = opts.gather == "packed"
         self._projection = dict(
             kernel=projection_kernel(opts.antialiased, opts.radius_rule, opts.fast_math,
-                                     record_channels=c if packed else 0, color_storage=opts.color_storage), dim=n,
+                                     record_channels=c if packed else 0,
+                                     color_storage=opts.color_storage if packed else "float32"), dim=n,
             inputs=[w["means"], w["quats"], w["scales"], w["opacities"], w["viewmat"], w["K"],
                     w["color_table"] if packed else None, width, height,
                     opts.near_plane, opts.far_plane, opts.eps2d, opts.alpha_min, opts.radius_clip],

@@ -154,6 +154,23 @@ def test_the_latent_grid_reads_contracted_box_positions_and_starts_as_no_grid():
         SecureConfig(hidden_latent=1)
 
 
+def test_the_exported_hidden_gaussians_are_those_the_latent_grid_renders(scene):
+    """``hidden_gaussians`` (reveal's export, the audit's hidden surface) decodes with the key's latent
+    grid, as its renders do."""
+    secure = apply_overrides(SecureConfig(payload="object"), {"strategy.mode": "cover", "hidden_offsets": 4,
+                                                              "hidden_width": 16, "hidden_anchors": 50,
+                                                              "hidden_latent": 3})
+    trainer = SecureTrainer(scene, TrainConfig(iterations=2, raster=RasterOptions(tile_size=8)), secure)
+    model = trainer.model
+    with torch.no_grad():
+        model.private.latent_grid.grid.normal_()
+        rendered = trainer.render_hidden(scene.train[0], 0)["gaussians"]
+        exported = model.hidden_gaussians(scene.train[0])
+    for name in ("means", "colors", "opacities"):
+        assert exported[name].shape == rendered[name].shape and torch.allclose(exported[name], rendered[name],
+                                                                               atol=1e-6), name
+
+
 def test_the_box_encoding_holds_octaves_of_the_position():
     from securegs_warp.model import ScaffoldHeads
     from securegs_warp.secure.heads import PrivateHeads

@@ -64,7 +64,7 @@ SECURE_FLAGS = (
     ("--hidden-encoding", "secure.hidden_encoding", "box frame: octaves of sines and cosines of the anchor's "
                                                     "position that F_o† reads (default 6; 0: the position alone)"),
     ("--hidden-latent", "secure.hidden_latent", "box frame: resolution of the key's private latent grid over the "
-                                                "object's neighbourhood (0: none)"),
+                                                "object's neighbourhood (default 0: none)"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-stride", "secure.hidden_stride", "train the hidden branch on every N-th step only, its loss weighted "
                                                 "N times (faster training, lower hidden fidelity; default 1)"),

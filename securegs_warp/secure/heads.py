@@ -22,15 +22,15 @@ INSIDE_TIE_BREAK = 1e-3
 
 
 class LatentGrid(nn.Module):
-    """A key's private latent: a dense grid of features [d, r, r, r] over the box's neighbourhood,
-    read trilinearly at each anchor's position and added to the anchor's public feature before the
-    private heads decode it (``feature_source`` of ``decode_rows``). Without it the hidden
-    Gaussians' colours, opacities and shapes are functions of the public features alone, which the
-    cover's loss shapes; the grid gives the key free parameters near the object without putting any
-    in the release (d·r³ floats in the key). Positions are read in the box's frame contracted per
-    axis, u = p / (1 + |p|): the box's inside spans the middle half of the grid and the serving
-    anchors outside it keep distinct cells instead of piling onto the border. Zero at the start:
-    the decoding begins as it would without it."""
+    """A key's private latent: a dense grid of features (``grid`` [1, d, r, r, r]) over the box's
+    neighbourhood, read trilinearly at each anchor's position and added to the anchor's public
+    feature before the private heads decode it (``feature_source`` of ``decode_rows``). Without it
+    the hidden Gaussians' colours, opacities and shapes are functions of the public features alone,
+    which the cover's loss shapes; the grid gives the key free parameters near the object without
+    putting any in the release (d·r³ floats in the key). Positions are read in the box's frame
+    contracted per axis, u = p / (1 + |p|): the box's inside spans the middle half of the grid and
+    the serving anchors outside it keep distinct cells instead of piling onto the border. Zero at
+    the start: the decoding begins as it would without it."""
 
     def __init__(self, feat_dim: int, resolution: int):
         super().__init__()
@@ -155,6 +155,7 @@ class PrivateHeads(nn.Module):
         return None if self.latent_grid is None else self._with_latent
 
     def _with_latent(self, xyz: torch.Tensor, feat: torch.Tensor) -> torch.Tensor:
+        """[Nv, d]: features feat [Nv, d] plus the grid's value at anchor positions xyz [Nv, 3]."""
         return feat + self.latent_grid(self.box_position(xyz))
 
     def box_position(self, xyz: torch.Tensor) -> torch.Tensor:
@@ -240,7 +241,8 @@ class PrivateHeads(nn.Module):
         return (self.bits.vote(feat, xyz)[0] > 0.5).to(torch.int64)
 
     def named_mlps(self) -> dict[str, nn.Module]:
-        """Trainable parts by learning-rate schedule (the decoder's names are the public ones)."""
+        """Trainable parts by learning-rate schedule: the MLPs (the decoder's names are the public
+        ones) and the latent grid ("latent")."""
         parts = dict(self.decoder.named_mlps()) if self.decoder is not None else {}
         if self.offset_mlp is not None:
             parts["mlp_offset"] = self.offset_mlp

@@ -123,7 +123,7 @@ class SecureModel(ScaffoldModel):
             raise ValueError("this payload hides no image: there are no hidden Gaussians")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
         return decode_all(self.anchors, private.decoder, camera, offset_source=source,
-                          anchor_mask=private.serving_mask(self.anchors.xyz))
+                          feature_source=private.feature_source, anchor_mask=private.serving_mask(self.anchors.xyz))
 
     def _explicit_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""

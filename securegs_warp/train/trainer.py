@@ -53,8 +53,8 @@ class ScaffoldTrainer(ViewTrainer):
     # -- optimisation ---------------------------------------------------------------------------
 
     def _mlp_schedule(self, group_name: str) -> tuple:
-        """(initial, final) learning rate of an MLP group; private copies (``private_NAME``,
-        ``private2_NAME`` ...) share the public schedule."""
+        """(initial, final) learning rate of a head group (an MLP, or a key's latent grid); private
+        copies (``private_NAME``, ``private2_NAME`` ...) share the public schedule."""
         c = self.config
         schedules = {"mlp_opacity": c.mlp_opacity_lr, "mlp_cov": c.mlp_cov_lr, "mlp_color": c.mlp_color_lr,
                      "mlp_featurebank": c.mlp_featurebank_lr, "appearance": c.appearance_lr,
