@@ -21,13 +21,13 @@ Accuracy-for-time variants (compile-time, see ``blend_kernels``): colours read f
 (half the bytes per Gaussian in global and shared memory; arithmetic stays float32 and the colour
 gradients are written in float32), and Warp's fast math.
 
-Packed records (``blend_kernels(..., packed=True)``, written by the projection; layout in ``kernels/records.py``):
-each batch is gathered with one ``tile_load_indexed`` of a per-Gaussian row instead of one per
-field. In Warp 1.19 each indexed load into shared memory is a register gather, a store and a block
-barrier (and, reloaded in a loop, one more barrier before the store), so the per-field gathers
-serialise four or five global-memory latencies and 10 or 12 barriers per batch; the record costs one
-latency, and its gather (``tile_assign`` into tiles made once) only the barriers it needs: 2 in
-the forward, 3 in the backward.
+Packed records (``blend_kernels(..., packed=True)``, written by the projection; the layout is in
+``kernels/records.py``): each batch is gathered with one ``tile_load_indexed`` of a per-Gaussian
+row instead of one per field. In Warp 1.19 each indexed load into shared memory is a register
+gather, a store and a block barrier (and, reloaded in a loop, one more barrier before the store),
+so the per-field gathers serialise four or five global-memory latencies and 10 or 12 barriers per
+batch; the record costs one latency, and its gather (``tile_assign`` into tiles made once) only
+the barriers it needs: 2 in the forward, 3 in the backward.
 """
 import functools
 from typing import Any

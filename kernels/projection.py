@@ -41,8 +41,7 @@ def quat_to_rotmat(q: wp.vec4) -> wp.mat33:
 
 
 @functools.lru_cache(maxsize=None)
-def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, record_channels: int = 0,
-                      color_storage: str = "float32"):
+def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, record: tuple | None = None):
     """The projection kernel specialised for one option set.
 
     antialiased: multiply opacity by the Mip-Splatting compensation sqrt(det(Σ)/det(Σ + εI)).
@@ -52,18 +51,18 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
     fast_math: compile with Warp's ``fast_math`` module option (CUDA: nvcc ``--use_fast_math``,
         approximate exp/log/sqrt/division and flushed denormals; the float64 camera transform is
         unaffected). Warp 1.19 does not pass it to its CPU compiler: there it changes nothing.
-    record_channels: > 0: also write each visible Gaussian's packed record (layout in
-        ``kernels/records.py``) into ``records`` [N, record_width / 4] vec4, with its
-        ``record_channels`` colours from ``colors`` [N, C] of ``color_storage`` when
-        ``colors_in_record``; 0: neither array is used (pass None for both). Written
+    record: (C, color_storage): also write each visible Gaussian's packed record (layout in
+        ``kernels/records.py``) into ``records`` [N, record_width / 4] vec4, with its C colours from
+        ``colors`` [N, C] of ``color_storage`` when ``colors_in_record``; None: neither array is
+        used (pass None for both). Written
         here rather than by a kernel of its own, which read back the outputs just written (a launch
         and a pass over N rows more). The records take no gradient.
     """
     if radius_rule not in RADIUS_RULES:
         raise ValueError(f"radius_rule must be one of {RADIUS_RULES}, got {radius_rule!r}")
     rule = RADIUS_RULES.index(radius_rule)
-    PACK = record_channels > 0
-    C = max(record_channels, 1)
+    PACK = record is not None
+    C, color_storage = record if PACK else (1, "float32")
     ColorT = COLOR_STORAGES[color_storage]
     WITH_COLORS = PACK and colors_in_record(color_storage)
     W = record_width(C, color_storage)
@@ -228,7 +227,7 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
             radii[i] = wp.vec2i(0, 0)
 
     tag = (f"{'aa' if antialiased else 'classic'}_{radius_rule}{'_fast' if fast_math else ''}"
-           f"{f'_rec{record_channels}_{color_storage}' if PACK else ''}")
+           f"{f'_rec{C}_{color_storage}' if PACK else ''}")
     project.__name__ = project.__qualname__ = f"project_{tag}"
     # fast_math is a module option: each variant gets its own module.
     return wp.kernel(project, module="unique", module_options={"fast_math": fast_math})

@@ -1,6 +1,6 @@
 """Packed per-Gaussian records: what the blending kernels gather for each Gaussian of a batch.
 
-The projection writes a visible Gaussian's row (``projection_kernel`` with ``record_channels``)
+The projection writes a visible Gaussian's row (``projection_kernel`` with ``record``)
 beside its per-field outputs; the blending kernels gather a batch's rows with one indexed load
 instead of one per field (see ``blend``).
 """

@@ -361,6 +361,7 @@ class RenderPlan:
         self.width, self.height, self.opts = width, height, opts
         n, c = inputs["colors"].shape
         self.n = n
+        packed = opts.gather == "packed"
         f32 = dict(device=tdev, dtype=torch.float32)
         ts = opts.tile_size
         self.tiles_x, self.tiles_y = math.ceil(width / ts), math.ceil(height / ts)
@@ -411,7 +412,7 @@ class RenderPlan:
                 "ranges": _wp(torch.empty(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
             }
             w_out["records"] = None
-            if opts.gather == "packed":
+            if packed:
                 # Packed per-Gaussian records, [N, P / 4] vec4 (P float32 words a row).
                 records = torch.empty(n, record_width(c, opts.color_storage) // 4, 4, **f32)
                 w_out["records"] = _wp(records, wp.vec4)
@@ -421,11 +422,9 @@ class RenderPlan:
                 wp.to_torch(self.w["colors_grad"]), wp.to_torch(self.w["background"].grad)]
             self.means2d_grad = wp.to_torch(self.w["means2d"].grad)
         w = self.w
-        packed = opts.gather == "packed"
         self._projection = dict(
             kernel=projection_kernel(opts.antialiased, opts.radius_rule, opts.fast_math,
-                                     record_channels=c if packed else 0,
-                                     color_storage=opts.color_storage if packed else "float32"), dim=n,
+                                     record=(c, opts.color_storage) if packed else None), dim=n,
             inputs=[w["means"], w["quats"], w["scales"], w["opacities"], w["viewmat"], w["K"],
                     w["color_table"] if packed else None, width, height,
                     opts.near_plane, opts.far_plane, opts.eps2d, opts.alpha_min, opts.radius_clip],

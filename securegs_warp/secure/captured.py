@@ -8,8 +8,7 @@ serving radius (or follows the anchors while there are no more than ``serving`` 
 decoding of their rows (``decode_rows``: view directions, the latent grid's features where the key
 has one, the private MLPs, offsets, scales) has a fixed shape: ``torch.cuda.make_graphed_callables``
 captures its forward and its backward once per shape, and each step replays them as one autograd
-node. The gathers of the anchor rows and the
-opacity test stay eager (they index by data).
+node. The gathers of the anchor rows and the opacity test stay eager (they index by data).
 
 A replay writes fixed buffers: its outputs and the parameters' gradients. So a call decodes op by
 op instead when a call of the same graph still awaits its backward (``Lease``), or when a

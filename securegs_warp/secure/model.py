@@ -74,8 +74,8 @@ class SecureModel(ScaffoldModel):
         mask, index, keep = self._decoding_rows(private, anchors, camera, visible)
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_source=private.feature_source, feature_grad=feature_grad,
-                           scaling_grad=scaling_grad,
-                           anchor_mask=mask, anchor_index=index, rows=rows, compact=compact, keep=keep)
+                           scaling_grad=scaling_grad, anchor_mask=mask, anchor_index=index, rows=rows,
+                           compact=compact, keep=keep)
 
     def fixed_rows(self, secret: int = 0) -> bool:
         """Whether secret ``secret``'s hidden renders decode the same number of rows at every view
