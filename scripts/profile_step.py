@@ -4,6 +4,7 @@ synthetic scene (securegs_warp.step_profile has the sections and how they are ti
     python scripts/profile_step.py                       # GPU: 1920×1080
     python scripts/profile_step.py --device cpu --width 64 --height 48 --steps 2 --warmup 1
     python scripts/profile_step.py --device cpu --width 64 --height 48 --mode rdo,cover --count-ops --no-timing
+    python scripts/profile_step.py --mode cover --phase finish    # the finishing phase's step
 
 Every trainer (Scaffold-GS, then SecureGS in each --mode) first runs --warmup steps untimed (kernel
 compilation, allocator warm-up), then --steps steps with the section timers and --steps without;
@@ -14,6 +15,7 @@ copies, and Warp launches); with --syncs (CUDA), --steps more with torch's synch
 Writes profile_step.json and .md to --out (default $OUT) when given.
 """
 import argparse
+import dataclasses
 import functools
 import json
 import os
@@ -27,6 +29,10 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure.trainer import SecureTrainer
 from securegs_warp.train import ScaffoldTrainer
+
+# Finishing steps before a --phase finish profile: the replayed phase captures its graphs after
+# secure.finish_graph.WARMUP of them.
+PHASE_WARMUP = 10
 
 
 def main():
@@ -49,6 +55,9 @@ def main():
     parser.add_argument("--syncs", action="store_true", help="also name where a step waits for the device (CUDA)")
     parser.add_argument("--no-timing", dest="timing", action="store_false", help="skip the timed steps")
     parser.add_argument("--options", default="", help="rasterizer options on top of the device's, e.g. capture=true")
+    parser.add_argument("--phase", choices=("joint", "finish"), default="joint",
+                        help="the steps profiled: the joint run's (default), or the finishing phase's after a joint "
+                             "run of --warmup steps (SecureGS trainers only)")
     parser.add_argument("--out", default=os.environ.get("OUT"), help="folder for profile_step.json and .md")
     args = parser.parse_args()
     try:
@@ -60,19 +69,27 @@ def main():
     quiet_warp()
     scene = make_synthetic_scene(hidden=args.hide, level="object", width=args.width, height=args.height,
                                  n_train=args.train_views, n_test=1, device=args.device)
-    config = TrainConfig(iterations=args.iterations, raster=raster)
+    finish = args.phase == "finish"
+    # The finishing phase's steps: a joint run of --warmup steps, then a phase long enough for every
+    # measurement after PHASE_WARMUP steps of it (plain Scaffold-GS has no phase).
+    config = TrainConfig(iterations=args.warmup if finish else args.iterations, raster=raster)
+    phase_steps = PHASE_WARMUP + args.steps * (2 + args.count_ops + 2 * args.syncs) + 1
     modes = [m.strip() for m in args.mode.split(",") if m.strip()]
-    trainers = {"Scaffold-GS": lambda: ScaffoldTrainer(scene, config, device=args.device)}
+    trainers = {} if finish else {"Scaffold-GS": lambda: ScaffoldTrainer(scene, config, device=args.device)}
     for mode in modes:
         try:
             label, secure = compare.parse_variant(mode, SecureConfig(payload=args.payload))
         except ValueError as e:
             parser.error(str(e))
+        if finish:
+            secure = dataclasses.replace(secure, hidden_finish=phase_steps / args.warmup)
         trainers[label] = functools.partial(SecureTrainer, scene, config, secure, device=args.device)
     results, counts, syncs = {}, {}, {}
     for label, make in trainers.items():
         trainer = make()  # one at a time: a 1080p trainer holds its targets and buffers on the device
-        for _ in range(args.warmup):
+        if finish and not trainer.finish_steps:
+            parser.error(f"{label} has no finishing phase (it needs a hidden render)")
+        for _ in range(args.warmup + (PHASE_WARMUP if finish else 0)):
             trainer.step()
         if args.timing:
             results[label] = step_profile.profile_steps(trainer, args.steps)
@@ -85,12 +102,13 @@ def main():
             syncs[label] = step_profile.census_syncs(trainer, args.steps)
         del trainer
     device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
+    after = f"{PHASE_WARMUP} finishing steps after a joint run of {args.warmup}" if finish else str(args.warmup)
     setup = (f"{device}, synthetic {args.width}×{args.height}, payload {args.payload}, mean of {args.steps} "
-             f"steps after {args.warmup}, raster {benchmark.options_text(raster) or 'default options'}")
+             f"steps after {after}, raster {benchmark.options_text(raster) or 'default options'}")
     tables = []
     if results:
         table = step_profile.profile_table(results, setup)
-        for label in list(results)[1:]:
+        for label in list(results)[1:] if not finish else []:
             ratio = results[label]["step_ms"] / results["Scaffold-GS"]["step_ms"]
             table += f"\n\n{label} step / Scaffold-GS step (no timers): {ratio:.2f}"
         tables.append(table)

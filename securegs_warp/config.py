@@ -289,8 +289,10 @@ class SecureConfig:
         crop its rasterize is replayed too (``RasterOptions.capture``; the intersection capacity
         grows with what the views need, and a step whose render overflowed it is skipped). Robust
         training's attacks on anchor positions (``noise-xyz``, ``quantize``) replay too: they serve
-        as many anchors, by rank (``SecureModel._decoding_rows``). Evaluation (no gradients) and the
-        CPU decode op by op, as everything does with it off.
+        as many anchors, by rank (``SecureModel._decoding_rows``). The finishing phase's whole step
+        (attacks, decoding, rasterize, loss, backward, Adam) is then replayed from two CUDA graphs
+        (``secure.finish_graph``; its attacks drawn from the device's generator). Evaluation (no
+        gradients) and the CPU decode op by op, as everything does with it off.
     """
 
     payload: str = "object+bits:48"

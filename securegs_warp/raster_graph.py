@@ -23,12 +23,14 @@ and a busy entry makes the pool build another.
 from __future__ import annotations
 
 import collections
+import functools
 
 import torch
 import warp as wp
 
 from .lease import Lease
 from .rasterizer import OUTPUT_NAMES, RasterOptions, RenderPlan, check_finite
+from .warp_scope import warp_stream
 
 # Capacity = HEADROOM × the intersections of the first render (or of one that overflowed it) +
 # SLACK: room for the scene to move.
@@ -83,7 +85,9 @@ class _Captured:
         captured on a side stream (CUDA cannot capture torch's legacy default stream) and replayed
         on torch's current stream."""
         with self.plan.scoped():
-            if not self.cuda:
+            if not self.cuda or torch.cuda.is_current_stream_capturing():
+                # On the CPU, or inside a caller's CUDA graph (secure.finish_graph), which records
+                # these launches itself.
                 ops()
                 return
             graph = self.graphs.get(name)
@@ -91,14 +95,14 @@ class _Captured:
                 ops()
                 side = torch.cuda.Stream(self.static["means"].device)
                 side.wait_stream(torch.cuda.current_stream())
-                w_side = wp.stream_from_torch(side)
+                w_side = warp_stream(side)
                 # Warp launches go to its current stream: make it the capturing one.
                 with wp.ScopedStream(w_side), wp.ScopedCapture(device=self.plan.device, stream=w_side) as capture:
                     ops()
                 torch.cuda.current_stream().wait_stream(side)
                 self.graphs[name] = capture.graph
             else:
-                wp.capture_launch(graph, stream=wp.stream_from_torch(torch.cuda.current_stream()))
+                wp.capture_launch(graph, stream=warp_stream(torch.cuda.current_stream()))
 
     def check_pending(self, grow: bool = True) -> None:
         """Read the last forward once it has finished: raise for a non-finite input; for an
@@ -111,10 +115,7 @@ class _Captured:
         check_finite((render.names, render.finite))
         if render.needed > render.capacity:
             if grow:
-                # The old buffers may still be read by a queued replay: torch's allocator reuses
-                # them only after the work queued on its stream, the one every launch here uses.
-                self.plan.allocate_intersections(int(render.needed * HEADROOM) + SLACK)
-                self.graphs.clear()  # they sort into the old buffers
+                self.grow(render.needed)
             if not render.asked:
                 raise RuntimeError(
                     f"a captured render needed {render.needed} tile intersections, more than the capacity of "
@@ -131,7 +132,11 @@ class _Captured:
         names, flags = finite
         count = self.plan.ends[-1:] if self.plan.n else torch.zeros(1, dtype=torch.int64)
         flags = flags if flags is not None else torch.ones(0, dtype=torch.bool)
-        if self.cuda:
+        if self.cuda and torch.cuda.is_current_stream_capturing():
+            # Inside a caller's graph nothing runs before its replays: there is nothing to read
+            # now. The caller compares info["n_intersections"] with info["capacity"] after each.
+            self.pending = None
+        elif self.cuda:
             self.host_count.copy_(count, non_blocking=True)
             host_flags = self.host_flags[:flags.numel()]
             host_flags.copy_(flags, non_blocking=True)
@@ -142,6 +147,14 @@ class _Captured:
             self.pending = _Render(None, count.clone(), flags.clone(), names, self.plan.capacity)
         out = [self.plan.out[k].clone() for k in OUTPUT_NAMES]
         return out + [self.plan.ends[-1].clone() if self.plan.n else 0], self.pending
+
+    def grow(self, needed: int) -> None:
+        """Make room for a render of ``needed`` intersections and those to come (its graphs are
+        captured again)."""
+        # The old buffers may still be read by a queued replay: torch's allocator reuses them only
+        # after the work queued on its stream, the one every launch here uses.
+        self.plan.allocate_intersections(int(needed * HEADROOM) + SLACK)
+        self.graphs.clear()  # they sort into the old buffers
 
     def backward(self, grads) -> list:
         for buffer, g in zip(self.cotangents, grads):
@@ -209,7 +222,12 @@ class _CapturedRasterize(torch.autograd.Function):
             raise
         ctx.lease = lease
         ctx.info = info
-        info["complete"] = render.complete
+        # For a caller's graph that records this render (secure.finish_graph): the capacity it
+        # replays with, the entry's growth, and a lease that keeps the entry (and so the buffers the
+        # graph reads) from other renders while the graph lives.
+        info.update(capacity=entry.plan.capacity, grow=entry.grow, hold=functools.partial(Lease, entry))
+        if render is not None:
+            info["complete"] = render.complete
         ctx.mark_non_differentiable(*outputs[3:8])
         return tuple(outputs)
 

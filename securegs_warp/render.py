@@ -20,7 +20,11 @@ _DEVICE_CAMERAS: dict = {}
 
 def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
     """(viewmat [4, 4], K [3, 3]) float32 tensors of a camera on ``device`` (kept per camera and
-    device while the camera's matrices keep their values; read them, do not write them)."""
+    device while the camera's matrices keep their values; read them, do not write them). A camera
+    with ``device_tensors`` set (a view that CUDA graphs replay: secure.finish_graph) gives those."""
+    fixed = getattr(cam, "device_tensors", None)
+    if fixed is not None:
+        return fixed
     key = (id(cam), torch.device(device))
     kept = _DEVICE_CAMERAS.get(key)
     if (kept is not None and kept[0]() is cam and np.array_equal(kept[1], cam.viewmat)

@@ -347,3 +347,21 @@ def test_sweep_files_and_plot(tmp_path):
     assert (tmp_path / "robustness.csv").read_text().splitlines()[0].startswith("model,spec,draw,psnr_hidden")
     plot_sweep(tmp_path / "r.png", rows)
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_perturb_with_device_drawn_attacks_reads_nothing_back():
+    """Dropout and noise draw their strengths, masks and noise from ``draws`` alone, with no host
+    read (what lets the finishing phase replay them from a CUDA graph); dropout drops exactly its
+    drawn share."""
+    model = tiny_model(n=1000)
+    host, draws = torch.Generator().manual_seed(0), torch.Generator().manual_seed(1)
+    state = host.get_state()
+    with torch.profiler.profile() as prof:
+        view = perturb(model.anchors, parse_robust("prune-random:0.4+noise-feat:0.5"), host, draws=draws)
+    assert torch.equal(host.get_state(), state)
+    reads = {"aten::item", "aten::_local_scalar_dense", "aten::nonzero"}
+    assert not [e.name for e in prof.events() if e.name in reads]
+    assert 0 < int((~view.keep).sum()) <= 400
+    from securegs_warp.secure.robust import _random_drop
+    for share in (0.0, 0.25, 0.333, 1.0):
+        assert int(_random_drop(1000, torch.tensor(share), draws).sum()) == round(share * 1000)

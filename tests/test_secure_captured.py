@@ -231,3 +231,58 @@ def test_a_run_on_cuda_resumes_into_its_finishing_phase(tmp_path):
     assert resumed.model._captured[0]._graphs, "the finishing phase did not replay the decoder"
     assert torch.isfinite(torch.cat([p.flatten() for p in resumed.model.secrets[0].parameters()])).all()
     assert resumed.evaluate_hidden()["psnr_hidden"] > before - 1.0
+
+
+def _phase_from_checkpoint(path, robust=None, replayed=True, monkeypatch=None):
+    """A trainer resumed from a joint run's checkpoint at ``path``, its finishing phase run to the
+    end (replayed from CUDA graphs, or op by op), and its hidden PSNR."""
+    from securegs_warp.secure import finish_graph
+    if not replayed:
+        monkeypatch.setattr(finish_graph, "replayable", lambda trainer: False)
+    t = _trainer("cuda", robust=robust, finish=1.0)
+    t.load_checkpoint(path)
+    stats = [t.step() for _ in range(t.finish_steps)]
+    assert all(s["phase"] == "finish" and "nonfinite_grads" not in s for s in stats)
+    return t, stats
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
+def test_the_replayed_finishing_phase_trains_the_key_as_the_eager_one(tmp_path, monkeypatch):
+    """Without attacks nothing in the phase is random: replayed from CUDA graphs (finish_graph)
+    after its warm-up steps, it leaves the private heads where the phase op by op leaves them, up
+    to float rounding, and reports the same losses."""
+    from securegs_warp.secure import finish_graph
+    t = _trainer("cuda", finish=1.0)
+    for _ in range(t.config.iterations):
+        t.step()
+    t.save_checkpoint(tmp_path / "joint.pt")
+    replayed, replayed_stats = _phase_from_checkpoint(tmp_path / "joint.pt")
+    assert replayed._finish_graph.ready and t.finish_steps > finish_graph.WARMUP
+    eager, eager_stats = _phase_from_checkpoint(tmp_path / "joint.pt", replayed=False, monkeypatch=monkeypatch)
+    assert eager._finish_graph is None
+    for (name, a), b in zip(replayed.model.secrets[0].named_parameters(), eager.model.secrets[0].parameters()):
+        assert (a - b).abs().max() <= 1e-4 * b.abs().max().clamp_min(1e-3), name
+    for a, b in zip(replayed_stats, eager_stats):
+        assert abs(a["loss"] - b["loss"]) <= 1e-4 * abs(b["loss"]) and abs(a["psnr"] - b["psnr"]) < 0.01
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
+def test_the_replayed_finishing_phase_draws_new_attacks_every_step(tmp_path):
+    """With the phase's attacks the replays draw a new dropout and noise each time (the graphs
+    advance the device's generator): the losses differ from step to step, the release stays as
+    it was, and the key still renders the object."""
+    robust = "prune-random:0.5+noise-feat:0.3"
+    t = _trainer("cuda", robust=robust, finish=1.0)
+    for _ in range(t.config.iterations):
+        t.step()
+    t.save_checkpoint(tmp_path / "joint.pt")
+    before = t.evaluate_hidden()["psnr_hidden"]
+    release = [p.detach().clone() for p in (*t.model.anchors.parameters(), *t.model.heads.parameters())]
+    resumed, stats = _phase_from_checkpoint(tmp_path / "joint.pt", robust=robust)
+    assert resumed._finish_graph.ready
+    from securegs_warp.secure import finish_graph
+    replays = [s["loss"] for s in stats[finish_graph.WARMUP:]]
+    assert len(set(replays)) == len(replays)
+    assert all(torch.equal(a, b) for a, b in
+               zip(release, (*resumed.model.anchors.parameters(), *resumed.model.heads.parameters())))
+    assert resumed.evaluate_hidden()["psnr_hidden"] > before - 1.0

@@ -13,7 +13,8 @@ node. The gathers of the anchor rows and the opacity test stay eager (they index
 A replay writes fixed buffers: its outputs and the parameters' gradients. So a call decodes op by
 op instead when a call of the same graph still awaits its backward (``Lease``), or when a
 parameter holds a gradient (the replayed backward hands the parameters its gradient buffer, which
-the next replay overwrites; training sets gradients to None after every step).
+the next replay overwrites; training sets gradients to None after every step), or inside a
+caller's graph (the finishing phase's, ``secure.finish_graph``), which records the ops themselves.
 """
 from __future__ import annotations
 
@@ -84,7 +85,9 @@ class CapturedRows:
         sources = self._sources()
         key = (xyz.shape[0], feat.requires_grad, log_scaling.requires_grad, xyz.device)
         graph = self._graphs.get(key)
+        # Inside a caller's CUDA graph (secure.finish_graph) the ops are recorded there instead.
         if (xyz.requires_grad or (graph is not None and graph.busy)
+                or (xyz.is_cuda and torch.cuda.is_current_stream_capturing())
                 or any(p.grad is not None for p in sources[:-1])):
             return decode_rows(self.private.decoder, self.private.hidden_offsets, xyz, feat, log_scaling, centre,
                                feature_source=self.private.feature_source)

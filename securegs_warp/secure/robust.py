@@ -17,13 +17,16 @@ import dataclasses
 
 import torch
 
-from ..attacks import ATTACK_NAMES, ATTACK_SYNTAX, Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
+from ..attacks import ATTACK_NAMES, ATTACK_SYNTAX, Attack, column_noise, lowest_mask, quantize_columns
 from ..model.anchors import AnchorSizes
 
 ROBUST_ATTACKS = ("prune-random", "prune-opacity", "noise-xyz", "noise-feat", "quantize")
 # How each is written, for messages and help: ATTACK_SYNTAX restricted to them.
 ROBUST_SYNTAX = ", ".join(s for s, n in zip(ATTACK_SYNTAX, ATTACK_NAMES) if n in ROBUST_ATTACKS)
 QUANTIZE_MAX_BITS = 16
+# The attacks whose strength is drawn on the anchors' device (the others need a host number: a count
+# of the least opaque anchors, a bit depth).
+DEVICE_DRAWN = ("prune-random", "noise-xyz", "noise-feat")
 
 
 def parse_robust(text: str, option: str = "robust") -> list[Attack]:
@@ -67,28 +70,34 @@ class PerturbedAnchors(AnchorSizes):
 
 
 def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
-            public_opacity: torch.Tensor | None = None) -> PerturbedAnchors:
+            public_opacity: torch.Tensor | None = None, draws: torch.Generator | None = None) -> PerturbedAnchors:
     """One draw of ``attacks`` (from ``parse_robust``) on an ``AnchorModel``'s tensors, in order.
 
     public_opacity: [N] total public opacity of each anchor in this step's view, NaN for anchors
-    the view did not decode (needed by ``prune-opacity``). The strengths are drawn from
-    ``generator``; masks and noise on the anchors' device, from a generator there seeded from it
-    (``generator`` itself where the anchors are on its device)."""
+    the view did not decode (needed by ``prune-opacity``). Masks, noise and the strengths of the
+    DEVICE_DRAWN attacks are drawn from ``draws`` (default: a generator on the anchors' device
+    seeded from ``generator``, or ``generator`` itself where the anchors are on its device); the
+    other attacks' strengths from ``generator``. Perturbing with only DEVICE_DRAWN attacks reads
+    nothing back to the host (``secure.finish_graph`` captures it)."""
     view = PerturbedAnchors(anchors.xyz, anchors.feat, anchors.offsets, anchors.scaling, anchors.rotation,
                             anchors.opacity)
-    draws = _device_generator(generator, view.xyz.device)
+    draws = _device_generator(generator, view.xyz.device) if draws is None else draws
     for attack in attacks:
-        u = float(torch.rand((), generator=generator))
-        if attack.name.startswith("prune-"):
-            if attack.name == "prune-random":
-                dropped = random_prune_mask(view.num_anchors, u * attack.args[0], draws, view.xyz.device)
-            else:
-                dropped = _least_opaque(public_opacity, u * attack.args[0])
+        if attack.name in DEVICE_DRAWN:
+            # Drawn where the masks and noise are: no host number, so a CUDA graph can replay it.
+            u = torch.rand((), generator=draws, device=draws.device)
+        else:  # a count or a bit depth the host needs
+            u = float(torch.rand((), generator=generator))
+        if attack.name == "prune-random":
+            dropped = _random_drop(view.num_anchors, u * attack.args[0], draws).to(view.xyz.device)
+            view.keep = ~dropped if view.keep is None else view.keep & ~dropped
+        elif attack.name == "prune-opacity":
+            dropped = _least_opaque(public_opacity, u * attack.args[0])
             view.keep = ~dropped if view.keep is None else view.keep & ~dropped
         elif attack.name in ("noise-xyz", "noise-feat"):
             name = attack.name.removeprefix("noise-")
             values = getattr(view, name)
-            setattr(view, name, values + column_noise(values, u * attack.args[0], draws))
+            setattr(view, name, values + column_noise(values, u.to(values.device) * attack.args[0], draws))
         else:  # quantize: straight through, so the parameters still get the gradient of the quantised values
             bits = attack.args[0] + int(u * (QUANTIZE_MAX_BITS - attack.args[0] + 1))
             for name in ("xyz", "feat", "scaling"):
@@ -96,6 +105,14 @@ def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
                 setattr(view, name, values + (quantize_columns(values.detach(), min(bits, QUANTIZE_MAX_BITS))
                                               - values.detach()))
     return view
+
+
+def _random_drop(n: int, fraction: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """[n] bool on ``generator``'s device with exactly round(fraction·n) True entries at random
+    places; ``fraction`` a 0-d tensor there (the count never goes to the host: each entry's rank in
+    a random order is compared with it)."""
+    ranks = torch.rand(n, generator=generator, device=generator.device).argsort().argsort()
+    return ranks < torch.round(fraction * n)
 
 
 def _device_generator(generator: torch.Generator, device: torch.device) -> torch.Generator:

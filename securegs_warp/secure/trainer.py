@@ -8,6 +8,7 @@ backward through all renders, then the region-aware strategy looks at every bran
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -23,6 +24,7 @@ from ..train.base import evaluated, frozen
 from ..train.losses import psnr
 from ..train.schedules import exponential_lr
 from ..train.trainer import ScaffoldTrainer
+from . import finish_graph
 from .crop import Crop, box_crop
 from .heads import PrivateHeads
 from .keyed_bits import new_seed
@@ -104,6 +106,9 @@ class SecureTrainer(ScaffoldTrainer):
         # Made when the phase begins (or a checkpoint of it is restored): it holds the private
         # heads alone, so nothing else can move in the phase.
         self._finish_optimizer = None
+        # The phase's step replayed from CUDA graphs (secure.finish_graph), made at its first step
+        # where it can be.
+        self._finish_graph = None
         # The running mean of the private heads' weights late in the phase (_average_private):
         # {"count": steps folded in, "weights": [tensor per parameter of the finishing optimizer]}.
         self._finish_average = None
@@ -179,8 +184,28 @@ class SecureTrainer(ScaffoldTrainer):
         # From FINISH_LR_FROM of the schedule at the phase's first step to its end at the last.
         progress = FINISH_LR_FROM + (1.0 - FINISH_LR_FROM) * (step - self.config.iterations) / self.finish_steps
         for group in optimizer.param_groups:
-            group["lr"] = exponential_lr(*self._mlp_schedule(group["name"]), 1, progress)
+            lr = exponential_lr(*self._mlp_schedule(group["name"]), 1, progress)
+            if torch.is_tensor(group["lr"]):  # a replayed update reads it where it is
+                group["lr"].fill_(lr)
+            else:
+                group["lr"] = lr
+        if self._finish_graph is None and finish_graph.replayable(self):
+            self._finish_graph = finish_graph.FinishGraph(self)
+        graph = self._finish_graph
+        if graph is not None and graph.ready:
+            loss, extra, skipped = graph.step(index)
+            extra = evaluated({**extra, **skipped})
+        else:
+            with graph.eager_stream() if graph is not None else contextlib.nullcontext():
+                loss, extra = self._eager_finish_step(step, index, optimizer)
+            if graph is not None:
+                graph.after_eager(step, index)
+        self._average_private(step)
+        first = next(value for key, value in extra.items() if key.startswith("psnr_hidden"))
+        return {"loss": loss.item(), "psnr": first, "phase": "finish", **self.size_stats(), **extra}
 
+    def _eager_finish_step(self, step: int, index: int, optimizer) -> tuple[torch.Tensor, dict]:
+        """A finishing step op by op: (its loss, the numbers it reports)."""
         def public():
             with torch.no_grad():
                 return self.render(self.scene.train[index], camera_index=index)["gaussians"]
@@ -193,10 +218,7 @@ class SecureTrainer(ScaffoldTrainer):
                                            None, 1.0)
             loss = self.image_losses(renders)
             loss.backward()
-        extra = evaluated({**extra, **self.checked_update(optimizer, renders, optimizer.step)})
-        self._average_private(step)
-        first = next(value for key, value in extra.items() if key.startswith("psnr_hidden"))
-        return {"loss": loss.item(), "psnr": first, "phase": "finish", **self.size_stats(), **extra}
+        return loss, evaluated({**extra, **self.checked_update(optimizer, renders, optimizer.step)})
 
     @torch.no_grad()
     def _average_private(self, step: int) -> None:
@@ -208,11 +230,9 @@ class SecureTrainer(ScaffoldTrainer):
         if self._finish_average is None:
             self._finish_average = {"count": 0, "weights": [torch.zeros_like(p) for p in params]}
         self._finish_average["count"] += 1
-        for mean, p in zip(self._finish_average["weights"], params):
-            mean.add_(p - mean, alpha=1.0 / self._finish_average["count"])
+        torch._foreach_lerp_(self._finish_average["weights"], params, 1.0 / self._finish_average["count"])
         if step == self.total_steps:
-            for mean, p in zip(self._finish_average["weights"], params):
-                p.copy_(mean)
+            torch._foreach_copy_(params, self._finish_average["weights"])
 
     def _finishing_optimizer(self) -> torch.optim.Adam:
         """Adam over the private heads alone."""
@@ -257,37 +277,43 @@ class SecureTrainer(ScaffoldTrainer):
             branches["hidden"] = hidden
         return extra
 
-    def _attacked_anchors(self, public, attacks: list):
+    def _attacked_anchors(self, public, attacks: list, draws: torch.Generator | None = None):
         """Robust training: this step's copy of the anchors attacked by ``attacks`` (``self.robust``
         in the joint run, ``self.finish_robust`` in the finishing phase) for the hidden renders (None
         without attacks; the bits are projected into every anchor after the update, see
         after_update). ``public()``: the Gaussians of the step's public render, read only by
-        prune-opacity (its scatter of the public opacities costs a host synchronisation)."""
+        prune-opacity (its scatter of the public opacities costs a host synchronisation). draws:
+        the generator of the masks and noise (``perturb``)."""
         if not attacks:
             return None
         opacity = public_opacity(public(), self.model.anchors) \
             if any(a.name == "prune-opacity" for a in attacks) else None
-        return perturb(self.model.anchors, attacks, self.generator, opacity)
+        return perturb(self.model.anchors, attacks, self.generator, opacity, draws)
 
-    def _hidden_losses(self, index: int, renders: list, step: int, anchors, visible, scale: float):
+    def _hidden_losses(self, index: int, renders: list, step: int, anchors, visible, scale: float,
+                       views: dict | None = None):
         """Appends each secret's hidden render of training view ``index`` (or of its image's view)
         to ``renders``, weighted λ·``scale``. anchors: the attacked copy or None; visible: the public
-        render's visibility of view ``index`` for those anchors, or None. Returns (the numbers to
-        report, [(gaussians, info, weight)] of each hidden render for the strategy)."""
+        render's visibility of view ``index`` for those anchors, or None; views: secret -> (camera,
+        target [H, W, 3]) that stand for that view (a replayed step's fixed buffers,
+        ``secure.finish_graph``). Returns (the numbers to report, [(gaussians, info, weight)] of
+        each hidden render for the strategy)."""
         extra, hidden = {}, []
         for secret, p in enumerate(self.payloads):
             view = index if p.views is not None else p.image_view
             if view is None:
                 continue
             crop = self._hidden_crop(secret, view)
+            camera = self.scene.train[view] if crop is None else crop.camera
+            target = p.views[view] if p.views is not None else p.image
+            if views is not None:
+                camera, target = views[secret]
             # The Gaussians that fail the opacity test stay in the render at opacity 0 (a host
             # synchronisation fewer) unless the strategy reads the hidden Gaussians row by row.
             compact = self.strategy.reads_hidden
-            out = self.render_hidden(self.scene.train[view] if crop is None else crop.camera, camera_index=view,
-                                     step=step, anchors=anchors, secret=secret,
+            out = self.render_hidden(camera, camera_index=view, step=step, anchors=anchors, secret=secret,
                                      visible=visible if view == index else None, compact=compact,
                                      replay_raster=self.replays_hidden_raster(secret, compact, crop))
-            target = p.views[view] if p.views is not None else p.image
             share = 1.0
             if crop is not None:
                 target, share = target[crop.rows, crop.cols], crop.share
@@ -454,9 +480,13 @@ class SecureTrainer(ScaffoldTrainer):
                 p.bits = message.to(self.device)
                 private.set_message(message_string(p.bits), seed, private.bits.cell)
                 private.to(self.device)
-        self._finish_optimizer = None
+        self._finish_optimizer = self._finish_graph = None
         if state.get("finish_optimizer") is not None:
-            self._finishing_optimizer().load_state_dict(state["finish_optimizer"])
+            optimizer = self._finishing_optimizer()
+            optimizer.load_state_dict(state["finish_optimizer"])
+            if self.device.type != "cuda":  # written by a replayed phase on CUDA (finish_graph)
+                for group in optimizer.param_groups:
+                    group["capturable"], group["lr"] = False, float(group["lr"])
         # None: written before the averaging window (or before the averaging existed: it restarts here).
         average = state.get("finish_average")
         self._finish_average = None if average is None else \
