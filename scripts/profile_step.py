@@ -6,8 +6,10 @@ synthetic scene (securegs_warp.step_profile has the sections and how they are ti
     python scripts/profile_step.py --device cpu --width 64 --height 48 --mode rdo,cover --count-ops --no-timing
     python scripts/profile_step.py --mode cover --phase finish    # the finishing phase's step
 
-Every trainer (Scaffold-GS, then SecureGS in each --mode) first runs --warmup steps untimed (kernel
-compilation, allocator warm-up), then --steps steps with the section timers and --steps without;
+Every trainer (Scaffold-GS, then SecureGS in each --mode; with --phase finish the SecureGS ones
+alone, their schedules scaled to a joint run of --warmup steps instead of --iterations, and 10
+finishing steps more) first runs --warmup steps untimed (kernel compilation, allocator warm-up),
+then --steps steps with the section timers and --steps without;
 with --count-ops, --steps more under torch.profiler, counting per section what a step launches
 (step_profile.count_ops: aten ops, autograd nodes, host reads, and on CUDA kernel launches and
 copies, and Warp launches); with --syncs (CUDA), --steps more with torch's synchronisation warnings and
@@ -64,6 +66,8 @@ def main():
         raster = benchmark.parse_options(args.options, RasterOptions.for_device(args.device))
     except ValueError as e:
         parser.error(str(e))
+    if args.phase == "finish" and args.warmup < 1:
+        parser.error("--phase finish needs a joint run before its phase: --warmup 1 or more")
     if args.syncs and args.device != "cuda":
         parser.error("--syncs names CUDA synchronisations: it needs --device cuda")
     quiet_warp()

@@ -176,12 +176,14 @@ class AttackContext:
 # ---------------------------------------------------------------------------------------------
 
 
-def random_prune_mask(n: int, fraction: float, generator: torch.Generator, device="cpu") -> torch.Tensor:
+def random_prune_mask(n: int, fraction, generator: torch.Generator, device="cpu") -> torch.Tensor:
     """[n] bool on ``device`` with exactly round(fraction·n) True entries at random places (drawn
-    on ``generator``'s device)."""
-    mask = torch.zeros(n, dtype=torch.bool, device=generator.device)
-    mask[torch.randperm(n, generator=generator, device=generator.device)[: round(fraction * n)]] = True
-    return mask.to(device)
+    on ``generator``'s device). fraction: a number, or a 0-d tensor on ``generator``'s device: the
+    count then never goes to the host (each entry's rank in a random order is compared with it), so
+    a CUDA graph can replay the draw (secure.finish_graph)."""
+    count = torch.round(fraction * n) if torch.is_tensor(fraction) else round(fraction * n)
+    ranks = torch.rand(n, generator=generator, device=generator.device).argsort().argsort()
+    return (ranks < count).to(device)
 
 
 def lowest_mask(score: torch.Tensor, fraction: float) -> torch.Tensor:

@@ -291,7 +291,9 @@ class SecureConfig:
         training's attacks on anchor positions (``noise-xyz``, ``quantize``) replay too: they serve
         as many anchors, by rank (``SecureModel._decoding_rows``). The finishing phase's whole step
         (attacks, decoding, rasterize, loss, backward, Adam) is then replayed from two CUDA graphs
-        (``secure.finish_graph``; its attacks drawn from the device's generator). Evaluation (no
+        where ``secure.finish_graph.replayable`` allows (training views of one size, whole views,
+        an object or scene payload, ``finish_robust`` of prune-random and noise-feat only; its
+        attacks drawn from the device's generator); otherwise it runs as the joint run does. Evaluation (no
         gradients) and the CPU decode op by op, as everything does with it off.
     """
 

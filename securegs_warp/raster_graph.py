@@ -225,7 +225,7 @@ class _CapturedRasterize(torch.autograd.Function):
         # For a caller's graph that records this render (secure.finish_graph): the capacity it
         # replays with, the entry's growth, and a lease that keeps the entry (and so the buffers the
         # graph reads) from other renders while the graph lives.
-        info.update(capacity=entry.plan.capacity, grow=entry.grow, hold=functools.partial(Lease, entry))
+        info.update(capacity=entry.plan.capacity, grow=entry.grow, lease=functools.partial(Lease, entry))
         if render is not None:
             info["complete"] = render.complete
         ctx.mark_non_differentiable(*outputs[3:8])

@@ -4,7 +4,7 @@ import torch
 import warp as wp
 
 
-# Torch stream handle -> its Warp wrapper, kept for as long as the process runs. A wrapper that
+# (torch device, stream handle) -> Warp's wrapper of that stream, kept for as long as the process runs. A wrapper that
 # is garbage-collected unregisters its CUDA stream from Warp, and with it any capture Warp was told
 # of on that stream (secure.finish_graph's); one wrapper per stream also saves making one per
 # scope. Torch keeps a small pool of streams, so this stays small.
@@ -16,9 +16,10 @@ def warp_stream(stream_or_device) -> wp.Stream:
     current stream), the same object for the same stream."""
     stream = stream_or_device if isinstance(stream_or_device, torch.cuda.Stream) \
         else torch.cuda.current_stream(stream_or_device)
-    wrapper = _WARP_STREAMS.get(stream.cuda_stream)
+    key = (stream.device, stream.cuda_stream)  # the default stream's handle is 0 on every device
+    wrapper = _WARP_STREAMS.get(key)
     if wrapper is None:
-        wrapper = _WARP_STREAMS[stream.cuda_stream] = wp.stream_from_torch(stream)
+        wrapper = _WARP_STREAMS[key] = wp.stream_from_torch(stream)
     return wrapper
 
 

@@ -362,6 +362,6 @@ def test_perturb_with_device_drawn_attacks_reads_nothing_back():
     reads = {"aten::item", "aten::_local_scalar_dense", "aten::nonzero"}
     assert not [e.name for e in prof.events() if e.name in reads]
     assert 0 < int((~view.keep).sum()) <= 400
-    from securegs_warp.secure.robust import _random_drop
-    for share in (0.0, 0.25, 0.333, 1.0):
-        assert int(_random_drop(1000, torch.tensor(share), draws).sum()) == round(share * 1000)
+    for share in (0.0, 0.25, 0.333, 1.0):  # a device count drops as many as a host one
+        assert int(A.random_prune_mask(1000, torch.tensor(share), draws).sum()) == round(share * 1000)
+        assert int(A.random_prune_mask(1000, share, draws).sum()) == round(share * 1000)

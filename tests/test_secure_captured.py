@@ -286,3 +286,26 @@ def test_the_replayed_finishing_phase_draws_new_attacks_every_step(tmp_path):
     assert all(torch.equal(a, b) for a, b in
                zip(release, (*resumed.model.anchors.parameters(), *resumed.model.heads.parameters())))
     assert resumed.evaluate_hidden()["psnr_hidden"] > before - 1.0
+
+
+def test_the_finishing_phase_replays_only_where_its_shapes_and_draws_are_fixed(monkeypatch):
+    """finish_graph.replayable: CUDA, the phase's attacks among those a replay draws, training views
+    of one size and whole (uncropped) hidden views; anything else runs the phase op by op."""
+    from securegs_warp.secure import finish_graph
+    from securegs_warp.secure.robust import parse_robust
+    t = _trainer("cpu", robust="prune-random:0.5+noise-feat:0.3", finish=1.0)
+    assert not finish_graph.replayable(t)  # the CPU
+    monkeypatch.setattr(t, "device", torch.device("cuda"))
+    assert finish_graph.replayable(t)
+    monkeypatch.setattr(t, "finish_robust", parse_robust("prune-random:0.5+noise-xyz:0.01"))
+    assert not finish_graph.replayable(t)
+    monkeypatch.undo()
+    monkeypatch.setattr(t, "device", torch.device("cuda"))
+    monkeypatch.setattr(t, "secure", dataclasses.replace(t.secure, hidden_crop=True))
+    assert not finish_graph.replayable(t)
+    monkeypatch.setattr(t, "secure", dataclasses.replace(t.secure, hidden_crop=False))
+    views = list(t.scene.train)
+    views[1] = dataclasses.replace(views[1], width=views[1].width // 2, image=None, alpha=None, hidden=None,
+                                   hidden_alpha=None)
+    monkeypatch.setattr(t.scene, "train", views)
+    assert not finish_graph.replayable(t)

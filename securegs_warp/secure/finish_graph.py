@@ -18,6 +18,11 @@ every replay (``robust.perturb`` with only device-drawn attacks reads nothing ba
 The graphs are captured after WARMUP eager steps of the phase (kernels loaded, the rasterizer's
 capacity set, Adam's state made); the last runs on a side stream, as torch asks of a capture's
 warm-up.
+
+Two differences from the eager step: a non-finite rasterizer input does not raise (the eager
+rasterize checks its inputs before it sorts; a replay cannot) but gives non-finite gradients, and
+the step is skipped and logged as such; and the graphs, with the memory of a step's intermediate
+tensors, live as long as the trainer.
 """
 from __future__ import annotations
 
@@ -32,22 +37,25 @@ from ..warp_scope import warp_stream
 
 # Eager phase steps before the capture (and again after a render overflowed its capacity).
 WARMUP = 3
-# The phase's attacks a replay draws (robust.DEVICE_DRAWN, less noise-xyz, which also changes which
-# anchors serve and is not replayed by the tests).
+# The phase's attacks a replay draws: those of robust.DEVICE_DRAWN that the CUDA tests replay.
+# noise-xyz draws on the device too, but it also changes which anchors serve (by rank), a path no
+# test has replayed inside a capture: a phase that trains against it runs op by op.
 REPLAYED_ATTACKS = ("prune-random", "noise-feat")
 
 
 def replayable(trainer) -> bool:
     """Whether ``trainer``'s finishing steps can be replayed: on CUDA with ``hidden_capture``,
-    every hidden render a whole view of fixed rows replayed by the rasterizer
-    (``SecureTrainer.replays_hidden_raster``) of a payload with a target per training view, and
-    only REPLAYED_ATTACKS."""
+    training views of one size, every hidden render a whole view (no crop) of fixed rows replayed by
+    the rasterizer (``SecureTrainer.replays_hidden_raster``) of a payload with a target per training
+    view, and only REPLAYED_ATTACKS."""
     if not (trainer.device.type == "cuda" and trainer.secure.hidden_capture):
         return False
     if any(attack.name not in REPLAYED_ATTACKS for attack in trainer.finish_robust):
         return False
+    if len({(cam.width, cam.height) for cam in trainer.scene.train}) > 1:  # the fixed buffers hold one view
+        return False
     rendered = [secret for secret, p in enumerate(trainer.payloads) if p.has_images]
-    return all(trainer.payloads[secret].views is not None and trainer._hidden_crop(secret, 0) is None
+    return all(trainer.payloads[secret].views is not None and not trainer.crops_hidden(secret)
                and trainer.replays_hidden_raster(secret, trainer.strategy.reads_hidden, None)
                for secret in rendered)
 
@@ -66,8 +74,10 @@ class FinishGraph:
         self.side = torch.cuda.Stream(trainer.device)
         # Once captured: secret -> (camera, target) the replays read, the rasterizer's info of each
         # render and the leases that keep its entry, and the outputs a replay writes.
-        self.views, self.infos, self.holds = {}, [], []
-        self.loss = self.extra = self.status = self.counts = None
+        # status: [1 + R] bool (the gradients finite, then each of the R renders within its
+        # capacity); counts: [R] int64, the renders' intersections.
+        self.views, self.infos, self.leases = {}, [], []
+        self.loss = self.extra = self.status = self.counts = self.warp_capture = None
 
     @property
     def ready(self) -> bool:
@@ -100,7 +110,8 @@ class FinishGraph:
                 camera.device_tensors = tuple(x.clone() for x in camera_tensors(t.scene.train[index], t.device))
                 self.views[secret] = (camera, p.views[index].clone())
         optimizer.zero_grad(set_to_none=True)  # the backward's gradients live in the graph's memory
-        draws = torch.cuda.default_generators[torch.device(t.device).index or 0]
+        index_of = t.device.index if t.device.index is not None else torch.cuda.current_device()
+        draws = torch.cuda.default_generators[index_of]
         forward, renders = torch.cuda.CUDAGraph(), []
         # Torch captures, on a stream Warp launches on too; Warp is told of the capture (external),
         # so that its sorts' scratch memory is freed after the capture rather than during it.
@@ -120,14 +131,15 @@ class FinishGraph:
                                         for out, _, _ in renders])
                 self.status = torch.cat([finite[None], complete])
             finally:
-                wp.capture_end(stream=stream)
+                # Warp's record of the capture keeps the kernel modules it launched loaded.
+                self.warp_capture = wp.capture_end(stream=stream)
         update = torch.cuda.CUDAGraph()
         with torch.cuda.graph(update, pool=forward.pool(), stream=self.side):
             optimizer.step()
         self.infos = [out["info"] for out, _, _ in renders]
         # The rasterizer's entries stay this graph's while it lives: no other render may write or
         # regrow the buffers it reads.
-        self.holds = [info["hold"]() for info in self.infos]
+        self.leases = [info["lease"]() for info in self.infos]
         self.graphs = (forward, update)
 
     def step(self, index: int) -> tuple[torch.Tensor, dict, dict]:
@@ -155,11 +167,11 @@ class FinishGraph:
         """After a replay whose renders overflowed their capacities [(info, intersections needed)]:
         grow them, drop the graphs (they read the old buffers) and capture again after WARMUP eager
         steps."""
-        for hold in self.holds:
-            hold.release()
+        for lease in self.leases:
+            lease.release()
         for info, needed in overflowed:
             info["grow"](needed)
-        self.graphs, self.holds, self.eager_steps = None, [], 0
+        self.graphs, self.leases, self.eager_steps = None, [], 0
         self.trainer._finishing_optimizer().zero_grad(set_to_none=True)
 
 

@@ -17,7 +17,7 @@ import dataclasses
 
 import torch
 
-from ..attacks import ATTACK_NAMES, ATTACK_SYNTAX, Attack, column_noise, lowest_mask, quantize_columns
+from ..attacks import ATTACK_NAMES, ATTACK_SYNTAX, Attack, column_noise, lowest_mask, quantize_columns, random_prune_mask
 from ..model.anchors import AnchorSizes
 
 ROBUST_ATTACKS = ("prune-random", "prune-opacity", "noise-xyz", "noise-feat", "quantize")
@@ -89,7 +89,7 @@ def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
         else:  # a count or a bit depth the host needs
             u = float(torch.rand((), generator=generator))
         if attack.name == "prune-random":
-            dropped = _random_drop(view.num_anchors, u * attack.args[0], draws).to(view.xyz.device)
+            dropped = random_prune_mask(view.num_anchors, u * attack.args[0], draws, view.xyz.device)
             view.keep = ~dropped if view.keep is None else view.keep & ~dropped
         elif attack.name == "prune-opacity":
             dropped = _least_opaque(public_opacity, u * attack.args[0])
@@ -105,14 +105,6 @@ def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
                 setattr(view, name, values + (quantize_columns(values.detach(), min(bits, QUANTIZE_MAX_BITS))
                                               - values.detach()))
     return view
-
-
-def _random_drop(n: int, fraction: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """[n] bool on ``generator``'s device with exactly round(fraction·n) True entries at random
-    places; ``fraction`` a 0-d tensor there (the count never goes to the host: each entry's rank in
-    a random order is compared with it)."""
-    ranks = torch.rand(n, generator=generator, device=generator.device).argsort().argsort()
-    return ranks < torch.round(fraction * n)
 
 
 def _device_generator(generator: torch.Generator, device: torch.device) -> torch.Generator:

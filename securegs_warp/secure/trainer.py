@@ -333,14 +333,18 @@ class SecureTrainer(ScaffoldTrainer):
         return (self.secure.hidden_capture and self.device.type == "cuda" and not compact and crop is None
                 and self.model.fixed_rows(secret))
 
+    def crops_hidden(self, secret: int) -> bool:
+        """Whether secret ``secret``'s hidden renders are cropped to its box (``_hidden_crop``)."""
+        return self.secure.hidden_crop and self.model.secrets[secret].frame == "box" and self.strategy.mode == "cover"
+
     def _hidden_crop(self, secret: int, view: int) -> Crop | None:
         """The part of training view ``view`` that secret ``secret``'s hidden render is trained on
         (``SecureConfig.hidden_crop``: box-frame keys in the cover mode), or None: the whole view.
         Other modes grow anchors from the hidden render's screen-space gradients, which are scaled by
         the image's size: they render whole views."""
-        private = self.model.secrets[secret]
-        if not (self.secure.hidden_crop and private.frame == "box" and self.strategy.mode == "cover"):
+        if not self.crops_hidden(secret):
             return None
+        private = self.model.secrets[secret]
         # One host read of the box while it is unchanged, then each view's crop from it.
         box, crops = self._crops[secret].get((private.box,), lambda: (private.box.detach().cpu().numpy(), {}))
         if view not in crops:
