@@ -178,8 +178,9 @@ class SecureTrainer(ScaffoldTrainer):
         on training view ``index`` (against ``finish_robust``'s attacks) trains its private heads alone.
         The release (anchors and public heads, and so the cover, the anchor cloud and the bits)
         stays as the joint run left it (without HDGER that includes its explicit hidden offsets: only
-        the private MLPs train). Reports "psnr" as the first hidden render's PSNR and "phase":
-        "finish"."""
+        the private MLPs train). On CUDA the step is replayed from graphs where
+        ``finish_graph.replayable`` allows, after a few steps op by op. Reports "psnr" as the first
+        hidden render's PSNR and "phase": "finish"."""
         optimizer = self._finishing_optimizer()
         # From FINISH_LR_FROM of the schedule at the phase's first step to its end at the last.
         progress = FINISH_LR_FROM + (1.0 - FINISH_LR_FROM) * (step - self.config.iterations) / self.finish_steps
