@@ -158,10 +158,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     ``max_registers``: registers per thread the CUDA backward may use (``__maxnreg__``; 0: the
     compiler's choice). Fewer registers let more blocks share a multiprocessor, at the risk of
     spilling to local memory; the CPU ignores it.
-    ``packed``: read each Gaussian from its row of ``records`` [N, record_width / 4] vec4 (``kernels/records.py``),
-    gathered with one indexed load per batch, instead of from means2d, conics, opacities, depths
-    (and colors when ``colors_in_record``); the kernels take ``records`` either way (None when
-    not packed) and read the per-field arrays only for what the record lacks.
+    ``packed``: read each Gaussian from its row of ``records`` [N, record_width / 4] vec4
+    (``kernels/records.py``), gathered with one indexed load per batch, instead of from means2d,
+    conics, opacities, depths (and colors when ``colors_in_record``); the kernels take ``records``
+    either way (None when not packed) and read the per-field arrays only for what the record lacks.
     ``backward_pixels``: pixels each thread of the backward walks (1, 2 or 4; launched with
     tile_size² / backward_pixels threads a tile, see ``backward_threads``). A thread reads each
     Gaussian once for its pixels and sums their gradients before the warp's shuffles, so P pixels a

@@ -54,9 +54,8 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
     record: (C, color_storage): also write each visible Gaussian's packed record (layout in
         ``kernels/records.py``) into ``records`` [N, record_width / 4] vec4, with its C colours from
         ``colors`` [N, C] of ``color_storage`` when ``colors_in_record``; None: neither array is
-        used (pass None for both). Written
-        here rather than by a kernel of its own, which read back the outputs just written (a launch
-        and a pass over N rows more). The records take no gradient.
+        used (pass None for both). Written here rather than by a kernel of its own, which read back
+        the outputs just written (a launch and a pass over N rows more). The records take no gradient.
     """
     if radius_rule not in RADIUS_RULES:
         raise ValueError(f"radius_rule must be one of {RADIUS_RULES}, got {radius_rule!r}")

@@ -293,8 +293,8 @@ class SecureConfig:
         (attacks, decoding, rasterize, loss, backward, Adam) is then replayed from two CUDA graphs
         where ``secure.finish_graph.replayable`` allows (training views of one size, whole views,
         an object or scene payload, ``finish_robust`` of prune-random and noise-feat only; its
-        attacks drawn from the device's generator); otherwise it runs as the joint run does. Evaluation (no
-        gradients) and the CPU decode op by op, as everything does with it off.
+        attacks drawn from the device's generator); otherwise it runs as the joint run does.
+        Evaluation (no gradients) and the CPU decode op by op, as everything does with it off.
     """
 
     payload: str = "object+bits:48"

@@ -101,8 +101,8 @@ def generate_neural_gaussians(
             SecureGS's hidden pass reads these public attributes and may move them less than the
             public pass does, so that the public file is shaped mainly by the public loss.
         rows: a ``RowDecoder`` that decodes the visible anchors' rows in place of :func:`decode_rows`
-            with ``heads``, ``offset_source``, ``feature_source`` and ``camera_index`` (which it then ignores; its k
-            must be ``heads.n_offsets``): the same decoding replayed from CUDA graphs
+            with ``heads``, ``offset_source``, ``feature_source`` and ``camera_index`` (which it then
+            ignores; its k must be ``heads.n_offsets``): the same decoding replayed from CUDA graphs
             (``secure.captured``).
         anchor_index: [Nv] long, the indices of ``visible_mask``'s True entries when the caller
             keeps them (finding them reads a count back from the device: a host synchronisation);

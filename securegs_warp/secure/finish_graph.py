@@ -12,8 +12,8 @@ step's gradient check) and skips the update of a step that failed it, as
 ``ViewTrainer.checked_update`` does. A render that overflowed its capacity grows it, and the graphs
 are captured again.
 
-A replay reads its view from fixed buffers: each secret's camera matrices and hidden target, copied
-in before it. The attacks draw from the device's default generator, which torch's graphs advance at
+A replay reads its view from fixed buffers: the camera's matrices and each secret's hidden target,
+copied in before it. The attacks draw from the device's default generator, which torch's graphs advance at
 every replay (``robust.perturb`` with only device-drawn attacks reads nothing back to the host).
 The graphs are captured after WARMUP eager steps of the phase (kernels loaded, the rasterizer's
 capacity set, Adam's state made); the last runs on a side stream, as torch asks of a capture's
@@ -72,12 +72,12 @@ class FinishGraph:
         self.eager_steps = 0
         self.graphs = None  # (forward and backward, update) once captured
         self.side = torch.cuda.Stream(trainer.device)
-        # Once captured: secret -> (camera, target) the replays read, the rasterizer's info of each
-        # render and the leases that keep its entry, and the outputs a replay writes.
-        # status: [1 + R] bool (the gradients finite, then each of the R renders within its
-        # capacity); counts: [R] int64, the renders' intersections.
-        self.views, self.infos, self.leases = {}, [], []
-        self.loss = self.extra = self.status = self.counts = self.warp_capture = None
+        # Once captured: the camera the replays render, secret -> (that camera, target buffer), the
+        # rasterizer's info of each render and the leases that keep its entry, and the outputs a
+        # replay writes. status: [1 + R] bool (the gradients finite, then each of the R renders
+        # within its capacity).
+        self.camera, self.views, self.infos, self.leases = None, {}, [], []
+        self.loss = self.extra = self.status = self.warp_capture = None
 
     @property
     def ready(self) -> bool:
@@ -102,13 +102,12 @@ class FinishGraph:
         optimizer = t._finishing_optimizer()
         _make_capturable(optimizer)
         params = [p for group in optimizer.param_groups for p in group["params"]]
-        # Each secret's view: a camera whose matrices are fixed tensors, and the target's buffer.
-        self.views = {}
-        for secret, p in enumerate(t.payloads):
-            if p.has_images:
-                camera = copy.copy(t.scene.train[index])
-                camera.device_tensors = tuple(x.clone() for x in camera_tensors(t.scene.train[index], t.device))
-                self.views[secret] = (camera, p.views[index].clone())
+        # The view every secret renders: a camera whose matrices are fixed tensors, and each
+        # secret's target buffer.
+        self.camera = copy.copy(t.scene.train[index])
+        self.camera.device_tensors = tuple(x.clone() for x in camera_tensors(t.scene.train[index], t.device))
+        self.views = {secret: (self.camera, p.views[index].clone()) for secret, p in enumerate(t.payloads)
+                      if p.has_images}
         optimizer.zero_grad(set_to_none=True)  # the backward's gradients live in the graph's memory
         index_of = t.device.index if t.device.index is not None else torch.cuda.current_device()
         draws = torch.cuda.default_generators[index_of]
@@ -126,7 +125,6 @@ class FinishGraph:
                 self.loss.backward()
                 grads = [p.grad for p in params if p.grad is not None]
                 finite = torch.isfinite(torch.nn.utils.get_total_norm(grads, norm_type=1.0))
-                self.counts = torch.stack([out["info"]["n_intersections"] for out, _, _ in renders])
                 complete = torch.stack([out["info"]["n_intersections"] <= out["info"]["capacity"]
                                         for out, _, _ in renders])
                 self.status = torch.cat([finite[None], complete])
@@ -144,10 +142,9 @@ class FinishGraph:
 
     def step(self, index: int) -> tuple[torch.Tensor, dict, dict]:
         t = self.trainer
-        for secret, (camera, target) in self.views.items():
-            viewmat, K = camera_tensors(t.scene.train[index], t.device)
-            camera.device_tensors[0].copy_(viewmat)
-            camera.device_tensors[1].copy_(K)
+        for fixed, value in zip(self.camera.device_tensors, camera_tensors(t.scene.train[index], t.device)):
+            fixed.copy_(value)
+        for secret, (_, target) in self.views.items():
             target.copy_(t.payloads[secret].views[index])
         forward, update = self.graphs
         forward.replay()
@@ -158,19 +155,19 @@ class FinishGraph:
             skipped.update(nonfinite_grads=sum(bad.values()), nonfinite_groups=sorted(bad))
         if not all(complete):
             skipped["incomplete_renders"] = complete.count(False)
-            self._regrow([(info, n) for info, n, ok in zip(self.infos, self.counts.tolist(), complete) if not ok])
+            self._regrow([info for info, ok in zip(self.infos, complete) if not ok])
         if not skipped:
             update.replay()
         return self.loss, self.extra, skipped
 
     def _regrow(self, overflowed: list) -> None:
-        """After a replay whose renders overflowed their capacities [(info, intersections needed)]:
-        grow them, drop the graphs (they read the old buffers) and capture again after WARMUP eager
-        steps."""
+        """After a replay whose renders (their rasterize infos ``overflowed``) needed more
+        intersections than their capacities: grow them, drop the graphs (they read the old buffers)
+        and capture again after WARMUP eager steps."""
         for lease in self.leases:
             lease.release()
-        for info, needed in overflowed:
-            info["grow"](needed)
+        for info in overflowed:
+            info["grow"](int(info["n_intersections"]))
         self.graphs, self.leases, self.eager_steps = None, [], 0
         self.trainer._finishing_optimizer().zero_grad(set_to_none=True)
 
