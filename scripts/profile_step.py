@@ -33,7 +33,7 @@ from securegs_warp.secure.trainer import SecureTrainer
 from securegs_warp.train import ScaffoldTrainer
 
 # Finishing steps before a --phase finish profile: the replayed phase captures its graphs after
-# secure.finish_graph.WARMUP of them.
+# secure.hidden_graph.WARMUP of them.
 PHASE_WARMUP = 10
 
 

@@ -180,7 +180,7 @@ def random_prune_mask(n: int, fraction, generator: torch.Generator, device="cpu"
     """[n] bool on ``device`` with exactly round(fraction·n) True entries at random places (drawn
     on ``generator``'s device). fraction: a number, or a 0-d tensor on ``generator``'s device: the
     count then never goes to the host (each entry's rank in a random order is compared with it), so
-    a CUDA graph can replay the draw (secure.finish_graph)."""
+    a CUDA graph can replay the draw (secure.hidden_graph)."""
     count = torch.round(fraction * n) if torch.is_tensor(fraction) else round(fraction * n)
     ranks = torch.rand(n, generator=generator, device=generator.device).argsort().argsort()
     return (ranks < count).to(device)
@@ -193,13 +193,21 @@ def lowest_mask(score: torch.Tensor, fraction: float) -> torch.Tensor:
     return mask
 
 
-def column_noise(values: torch.Tensor, strength: float, generator: torch.Generator) -> torch.Tensor:
+def column_noise(values: torch.Tensor, strength: float, generator: torch.Generator,
+                 std: torch.Tensor | None = None) -> torch.Tensor:
     """Gaussian noise shaped like ``values`` [N, ...]: per column (each index past the first), σ is
-    ``strength`` times that column's standard deviation over the N rows (0 for a single row). Drawn
-    on ``generator``'s device."""
-    std = values.detach().std(dim=0, keepdim=True) if values.shape[0] > 1 else torch.zeros_like(values[:1])
+    ``strength`` times that column's standard deviation over the N rows (0 for a single row), or
+    times ``std`` [1, ...] where given (``column_spread`` of the whole of which ``values`` are some
+    rows). Drawn on ``generator``'s device."""
+    std = column_spread(values) if std is None else std
     noise = torch.randn(values.shape, generator=generator, device=generator.device).to(values.device)
     return strength * std * noise
+
+
+def column_spread(values: torch.Tensor) -> torch.Tensor:
+    """[1, ...]: the standard deviation of each column of ``values`` [N, ...] over its N rows (0
+    for a single row)."""
+    return values.detach().std(dim=0, keepdim=True) if values.shape[0] > 1 else torch.zeros_like(values[:1])
 
 
 def quantize_columns(values: torch.Tensor, bits: int) -> torch.Tensor:

@@ -289,12 +289,13 @@ class SecureConfig:
         crop its rasterize is replayed too (``RasterOptions.capture``; the intersection capacity
         grows with what the views need, and a step whose render overflowed it is skipped). Robust
         training's attacks on anchor positions (``noise-xyz``, ``quantize``) replay too: they serve
-        as many anchors, by rank (``SecureModel._decoding_rows``). The finishing phase's whole step
-        (attacks, decoding, rasterize, loss, backward, Adam) is then replayed from two CUDA graphs
-        where ``secure.finish_graph.replayable`` allows (training views of one size, whole views,
-        an object or scene payload, ``finish_robust`` of prune-random and noise-feat only; its
-        attacks drawn from the device's generator); otherwise it runs as the joint run does.
-        Evaluation (no gradients) and the CPU decode op by op, as everything does with it off.
+        as many anchors, by rank (``SecureModel._decoding_rows``). The whole hidden branch
+        (attacks, decoding, rasterize, loss, backward; in the finishing phase also Adam) is then
+        replayed from CUDA graphs where ``secure.hidden_graph.replayable`` allows (training views
+        of one size, whole views, an object or scene payload, the phase's attacks of prune-random
+        and noise-feat only, drawn from the device's generator on the serving rows alone);
+        otherwise it runs op by op. Evaluation (no gradients) and the CPU decode op by op, as
+        everything does with it off.
     """
 
     payload: str = "object+bits:48"

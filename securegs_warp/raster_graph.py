@@ -86,7 +86,7 @@ class _Captured:
         on torch's current stream."""
         with self.plan.scoped():
             if not self.cuda or torch.cuda.is_current_stream_capturing():
-                # On the CPU, or inside a caller's CUDA graph (secure.finish_graph), which records
+                # On the CPU, or inside a caller's CUDA graph (secure.hidden_graph), which records
                 # these launches itself.
                 ops()
                 return
@@ -191,6 +191,14 @@ class _Render:
         return self.needed <= self.capacity
 
 
+def settle() -> None:
+    """Read every entry's last forward (``check_pending``): a caller's CUDA graph that records
+    captured renders (secure.hidden_graph) cannot wait for one while it captures."""
+    for entries in _POOL.values():
+        for entry in entries:
+            entry.check_pending()
+
+
 def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Captured:
     means, colors = inputs["means"], inputs["colors"]
     key = (str(means.device), means.shape[0], colors.shape[1], width, height, opts)
@@ -222,7 +230,7 @@ class _CapturedRasterize(torch.autograd.Function):
             raise
         ctx.lease = lease
         ctx.info = info
-        # For a caller's graph that records this render (secure.finish_graph): the capacity it
+        # For a caller's graph that records this render (secure.hidden_graph): the capacity it
         # replays with, the entry's growth, and a lease that keeps the entry (and so the buffers the
         # graph reads) from other renders while the graph lives.
         info.update(capacity=entry.plan.capacity, grow=entry.grow, lease=functools.partial(Lease, entry))

@@ -22,7 +22,7 @@ def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
     """(viewmat [4, 4], K [3, 3]) float32 tensors of a camera on ``device`` (kept per camera and
     device while the camera's matrices keep their values; read them, do not write them). A camera
     with ``device_tensors`` set gives those instead: its owner's fixed tensors, which it writes
-    before each replay of a CUDA graph that renders it (secure.finish_graph)."""
+    before each replay of a CUDA graph that renders it (secure.hidden_graph)."""
     fixed = getattr(cam, "device_tensors", None)
     if fixed is not None:
         return fixed

@@ -6,7 +6,7 @@ import warp as wp
 
 # (torch device, stream handle) -> Warp's wrapper of that stream, kept for as long as the process runs. A wrapper that
 # is garbage-collected unregisters its CUDA stream from Warp, and with it any capture Warp was told
-# of on that stream (secure.finish_graph's); one wrapper per stream also saves making one per
+# of on that stream (secure.hidden_graph's); one wrapper per stream also saves making one per
 # scope. Torch keeps a small pool of streams, so this stays small.
 _WARP_STREAMS: dict = {}
 
@@ -30,7 +30,7 @@ class WarpScope:
         self.scopes = [wp.ScopedDevice(device)]
         if torch_device.type == "cuda":
             # Entering waits for Warp's previous stream (an event recorded there). Inside torch's
-            # graph capture (secure.finish_graph) that wait would tie the graph to work outside it;
+            # graph capture (secure.hidden_graph) that wait would tie the graph to work outside it;
             # everything the graph orders after is on the capturing stream already.
             sync = not torch.cuda.is_current_stream_capturing()
             self.scopes.append(wp.ScopedStream(warp_stream(torch_device), sync_enter=sync))

@@ -4,6 +4,7 @@ decoding and render op by op. The comparison needs CUDA (SECUREGS_TEST_DEVICE=cu
 machine); on the CPU the option leaves training unchanged and the graphs refuse CPU tensors."""
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 
@@ -236,9 +237,9 @@ def test_a_run_on_cuda_resumes_into_its_finishing_phase(tmp_path):
 def _phase_from_checkpoint(path, robust=None, replayed=True, monkeypatch=None):
     """A trainer resumed from a joint run's checkpoint at ``path``, its finishing phase run to the
     end (replayed from CUDA graphs, or op by op), and its hidden PSNR."""
-    from securegs_warp.secure import finish_graph
+    from securegs_warp.secure import hidden_graph
     if not replayed:
-        monkeypatch.setattr(finish_graph, "replayable", lambda trainer: False)
+        monkeypatch.setattr(hidden_graph, "replayable", lambda trainer, phase: False)
     t = _trainer("cuda", robust=robust, finish=1.0)
     t.load_checkpoint(path)
     stats = [t.step() for _ in range(t.finish_steps)]
@@ -248,18 +249,18 @@ def _phase_from_checkpoint(path, robust=None, replayed=True, monkeypatch=None):
 
 @pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
 def test_the_replayed_finishing_phase_trains_the_key_as_the_eager_one(tmp_path, monkeypatch):
-    """Without attacks nothing in the phase is random: replayed from CUDA graphs (finish_graph)
+    """Without attacks nothing in the phase is random: replayed from CUDA graphs (hidden_graph)
     after its warm-up steps, it leaves the private heads where the phase op by op leaves them, up
     to float rounding, and reports the same losses."""
-    from securegs_warp.secure import finish_graph
+    from securegs_warp.secure import hidden_graph
     t = _trainer("cuda", finish=1.0)
     for _ in range(t.config.iterations):
         t.step()
     t.save_checkpoint(tmp_path / "joint.pt")
     replayed, replayed_stats = _phase_from_checkpoint(tmp_path / "joint.pt")
-    assert replayed._finish_graph.ready and t.finish_steps > finish_graph.WARMUP
+    assert replayed._graphs[hidden_graph.FINISH].ready and t.finish_steps > hidden_graph.WARMUP
     eager, eager_stats = _phase_from_checkpoint(tmp_path / "joint.pt", replayed=False, monkeypatch=monkeypatch)
-    assert eager._finish_graph is None
+    assert eager._graphs[hidden_graph.FINISH] is None
     for (name, a), b in zip(replayed.model.secrets[0].named_parameters(), eager.model.secrets[0].parameters()):
         assert (a - b).abs().max() <= 1e-4 * b.abs().max().clamp_min(1e-3), name
     for a, b in zip(replayed_stats, eager_stats):
@@ -271,6 +272,7 @@ def test_the_replayed_finishing_phase_draws_new_attacks_every_step(tmp_path):
     """With the phase's attacks the replays draw a new dropout and noise each time (the graphs
     advance the device's generator): the losses differ from step to step, the release stays as
     it was, and the key still renders the object."""
+    from securegs_warp.secure import hidden_graph
     robust = "prune-random:0.5+noise-feat:0.3"
     t = _trainer("cuda", robust=robust, finish=1.0)
     for _ in range(t.config.iterations):
@@ -279,33 +281,144 @@ def test_the_replayed_finishing_phase_draws_new_attacks_every_step(tmp_path):
     before = t.evaluate_hidden()["psnr_hidden"]
     release = [p.detach().clone() for p in (*t.model.anchors.parameters(), *t.model.heads.parameters())]
     resumed, stats = _phase_from_checkpoint(tmp_path / "joint.pt", robust=robust)
-    assert resumed._finish_graph.ready
-    from securegs_warp.secure import finish_graph
-    replays = [s["loss"] for s in stats[finish_graph.WARMUP:]]
+    assert resumed._graphs[hidden_graph.FINISH].ready
+    replays = [s["loss"] for s in stats[hidden_graph.WARMUP:]]
     assert len(set(replays)) == len(replays)
     assert all(torch.equal(a, b) for a, b in
                zip(release, (*resumed.model.anchors.parameters(), *resumed.model.heads.parameters())))
     assert resumed.evaluate_hidden()["psnr_hidden"] > before - 1.0
 
 
-def test_the_finishing_phase_replays_only_where_its_shapes_and_draws_are_fixed(monkeypatch):
-    """finish_graph.replayable: CUDA, the phase's attacks among those a replay draws, training views
-    of one size and whole (uncropped) hidden views; anything else runs the phase op by op."""
-    from securegs_warp.secure import finish_graph
+def _joint_run(steps, robust=None, replayed=True, monkeypatch=None):
+    """A joint run of ``steps`` steps on CUDA, its hidden branch replayed (hidden_graph) or op by op."""
+    from securegs_warp.secure import hidden_graph
+    if not replayed:
+        monkeypatch.setattr(hidden_graph, "replayable", lambda trainer, phase: False)
+    t = _trainer("cuda", robust=robust)
+    stats = [t.step() for _ in range(steps)]
+    assert all("nonfinite_grads" not in s and "incomplete_renders" not in s for s in stats)
+    return t, stats
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
+def test_the_replayed_joint_run_trains_as_the_eager_one(monkeypatch):
+    """Without attacks the joint run's hidden branch replayed from a CUDA graph (hidden_graph: the
+    serving rows gathered, their gradients added back into the anchors') trains the release and
+    the key as the branch op by op does, up to float rounding, with the same losses. Adam turns a
+    rounding-level difference in a gradient near 0 into a step of up to its learning rate, so a few
+    entries may differ by that much: all but 1% must agree to 1e-4."""
+    from securegs_warp.secure import hidden_graph
+    steps = hidden_graph.WARMUP + 5
+    replayed, replayed_stats = _joint_run(steps)
+    assert replayed._graphs[hidden_graph.JOINT].ready
+    eager, eager_stats = _joint_run(steps, replayed=False, monkeypatch=monkeypatch)
+    assert eager._graphs[hidden_graph.JOINT] is None
+    pairs = [*zip(replayed.model.anchors.named_parameters(), eager.model.anchors.parameters()),
+             *zip(replayed.model.secrets[0].named_parameters(), eager.model.secrets[0].parameters())]
+    for (name, a), b in pairs:
+        assert a.shape == b.shape, name
+        close = ((a - b).abs() <= 1e-4 * b.abs().max().clamp_min(1e-3)).float().mean().item()
+        assert close >= 0.99, (name, close)
+    for a, b in zip(replayed_stats, eager_stats):
+        assert abs(a["loss"] - b["loss"]) <= 1e-4 * abs(b["loss"]), (a["loss"], b["loss"])
+        assert abs(a["psnr_hidden"] - b["psnr_hidden"]) < 0.01
+
+
+@pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
+def test_the_replayed_joint_run_draws_new_attacks_and_learns():
+    """With robust training the joint run's replays draw new attacks every step, the features
+    take the hidden loss's gradient, and the key learns the object."""
+    from securegs_warp.secure import hidden_graph
+    t = _trainer("cuda", robust="prune-random:0.5+noise-feat:0.3")
+    before = t.evaluate_hidden()["psnr_hidden"]
+    stats = [t.step() for _ in range(t.config.iterations)]
+    assert t._graphs[hidden_graph.JOINT].ready
+    replays = [s["psnr_hidden"] for s in stats[hidden_graph.WARMUP:]]
+    assert len(set(replays)) == len(replays)
+    assert torch.isfinite(t.model.anchors.feat).all()
+    assert t.evaluate_hidden()["psnr_hidden"] > before + 1.0
+
+
+def test_the_hidden_branch_replays_only_where_its_shapes_and_draws_are_fixed(monkeypatch):
+    """hidden_graph.replayable: CUDA, the phase's attacks among those a replay draws, training views
+    of one size and whole (uncropped) hidden views; anything else runs op by op."""
+    from securegs_warp.secure import hidden_graph
     from securegs_warp.secure.robust import parse_robust
     t = _trainer("cpu", robust="prune-random:0.5+noise-feat:0.3", finish=1.0)
-    assert not finish_graph.replayable(t)  # the CPU
+    phases = (hidden_graph.JOINT, hidden_graph.FINISH)
+    assert not any(hidden_graph.replayable(t, phase) for phase in phases)  # the CPU
     monkeypatch.setattr(t, "device", torch.device("cuda"))
-    assert finish_graph.replayable(t)
+    assert all(hidden_graph.replayable(t, phase) for phase in phases)
     monkeypatch.setattr(t, "finish_robust", parse_robust("prune-random:0.5+noise-xyz:0.01"))
-    assert not finish_graph.replayable(t)
+    assert hidden_graph.replayable(t, hidden_graph.JOINT) and not hidden_graph.replayable(t, hidden_graph.FINISH)
+    monkeypatch.setattr(t, "robust", parse_robust("quantize:8"))
+    assert not hidden_graph.replayable(t, hidden_graph.JOINT)
     monkeypatch.undo()
     monkeypatch.setattr(t, "device", torch.device("cuda"))
     monkeypatch.setattr(t, "secure", dataclasses.replace(t.secure, hidden_crop=True))
-    assert not finish_graph.replayable(t)
+    assert not any(hidden_graph.replayable(t, phase) for phase in phases)
     monkeypatch.setattr(t, "secure", dataclasses.replace(t.secure, hidden_crop=False))
     views = list(t.scene.train)
     views[1] = dataclasses.replace(views[1], width=views[1].width // 2, image=None, alpha=None, hidden=None,
                                    hidden_alpha=None)
     monkeypatch.setattr(t.scene, "train", views)
-    assert not finish_graph.replayable(t)
+    assert not any(hidden_graph.replayable(t, phase) for phase in phases)
+
+
+def _rows_branch(t, robust=None):
+    """The hidden loss of training view 1 decoded from the serving rows gathered into fixed buffers
+    (hidden_graph.ServingRows) and differentiated there, the rows' gradients added into the
+    anchors': (loss, the anchors' feature and scaling gradients, the private heads' gradients)."""
+    from securegs_warp.secure.hidden_graph import ServingRows
+    anchors = t.model.anchors
+    index = t.model.secrets[0].serving_index(anchors.xyz)
+    rows = ServingRows(anchors, index, trained=True)
+    rows.fill(anchors, index)  # as every step does
+    renders = []
+    t._hidden_losses(1, renders, 1, {0: rows.view}, None, 1.0)
+    loss = t.image_losses(renders)
+    loss.backward()
+    rows.scatter(anchors, keep=False)
+    assert rows.view.feat.grad is None
+    return loss.detach(), anchors.feat.grad, anchors.scaling.grad, [p.grad for p in t.model.secrets[0].parameters()]
+
+
+def test_the_hidden_branch_on_the_gathered_serving_rows_matches_the_branch_on_the_model():
+    """What the replayed hidden branch computes, run op by op on the CPU: the serving rows gathered
+    into buffers decode, render and differentiate as the branch on the whole model does, their
+    gradients landing on the serving anchors' rows only."""
+    t = _trainer("cpu")
+    t.model.zero_grad(set_to_none=True)
+    renders = []
+    t._hidden_losses(1, renders, 1, None, None, 1.0)
+    want = t.image_losses(renders)
+    want.backward()
+    want_grads = (t.model.anchors.feat.grad.clone(), t.model.anchors.scaling.grad.clone(),
+                  [p.grad.clone() for p in t.model.secrets[0].parameters()])
+    t.model.zero_grad(set_to_none=True)
+    loss, feat, scaling, private = _rows_branch(t)
+    assert torch.allclose(loss, want, rtol=1e-5)
+    serving = t.model.secrets[0].serving_mask(t.model.anchors.xyz)
+    assert feat[~serving].abs().max() == 0 and feat[serving].abs().max() > 0
+    for got, expected in zip((feat, scaling, *private), (want_grads[0], want_grads[1], *want_grads[2])):
+        assert torch.allclose(got, expected, rtol=1e-4, atol=1e-6 * expected.abs().max())
+
+
+def test_attacks_on_the_serving_rows_drop_their_share_and_scale_noise_by_the_whole_model():
+    """Dropout on the gathered rows drops the drawn fraction of them; feature noise on them is
+    scaled by the spread of all anchors' features (PerturbedAnchors.spread), not of the rows'."""
+    from securegs_warp.secure.hidden_graph import ServingRows
+    from securegs_warp.secure.robust import parse_robust, perturb
+    t = _trainer("cpu")
+    anchors = t.model.anchors
+    index = t.model.secrets[0].serving_index(anchors.xyz)
+    rows = ServingRows(anchors, index, trained=False)
+    draws = torch.Generator().manual_seed(3)
+    dropped = [int((~perturb(rows.view, parse_robust("prune-random:0.8"), draws, None, draws).keep).sum())
+               for _ in range(200)]
+    assert max(dropped) <= 0.8 * len(index) + 1 and 0.35 < np.mean(dropped) / len(index) < 0.45  # u · 0.8
+    rows.view.spread["feat"].fill_(2.0)
+    noisy = [perturb(rows.view, parse_robust("noise-feat:1.0"), draws, None, draws).feat - rows.view.feat
+             for _ in range(1000)]
+    # σ = u · 2 with u uniform in [0, 1]: E[σ²] = 4 / 3 (the mean over 1000 draws within 0.15 at 4 s.d.).
+    assert abs(torch.stack(noisy).pow(2).mean().item() - 4.0 / 3.0) < 0.15

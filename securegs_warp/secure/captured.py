@@ -14,7 +14,7 @@ A replay writes fixed buffers: its outputs and the parameters' gradients. So a c
 op instead when a call of the same graph still awaits its backward (``Lease``), or when a
 parameter holds a gradient (the replayed backward hands the parameters its gradient buffer, which
 the next replay overwrites; training sets gradients to None after every step), or inside a
-caller's graph (the finishing phase's, ``secure.finish_graph``), which records the ops themselves.
+caller's graph (the whole hidden branch's, ``secure.hidden_graph``), which records the ops themselves.
 """
 from __future__ import annotations
 
@@ -85,7 +85,7 @@ class CapturedRows:
         sources = self._sources()
         key = (xyz.shape[0], feat.requires_grad, log_scaling.requires_grad, xyz.device)
         graph = self._graphs.get(key)
-        # Inside a caller's CUDA graph (secure.finish_graph) the ops are recorded there instead.
+        # Inside a caller's CUDA graph (secure.hidden_graph) the ops are recorded there instead.
         if (xyz.requires_grad or (graph is not None and graph.busy)
                 or (xyz.is_cuda and torch.cuda.is_current_stream_capturing())
                 or any(p.grad is not None for p in sources[:-1])):

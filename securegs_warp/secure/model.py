@@ -96,9 +96,14 @@ class SecureModel(ScaffoldModel):
         serving radius. They are served by rank instead: the anchors nearest the box as they now
         lie, as many as the radius serves unperturbed. That is the set ``fix_serving`` defines (the
         ``serving`` nearest), an attack's flips at the radius included, and its row count stays
-        fixed, so the captured decoding and rasterize still replay."""
-        serving = private.serving_mask(self.anchors.xyz)
+        fixed, so the captured decoding and rasterize still replay.
+
+        ``PerturbedAnchors`` of a key's serving rows only (``serving_rows``) decode every row."""
         keep = getattr(anchors, "keep", None)
+        if getattr(anchors, "serving_rows", False):
+            n, device = anchors.num_anchors, anchors.xyz.device
+            return torch.ones(n, dtype=torch.bool, device=device), torch.arange(n, device=device), keep
+        serving = private.serving_mask(self.anchors.xyz)
         if serving is not None:
             index = private.serving_index(self.anchors.xyz)
             if anchors.xyz is not self.anchors.xyz:

@@ -58,6 +58,12 @@ class PerturbedAnchors(AnchorSizes):
 
     xyz [N, 3], feat [N, d], offsets [N, k, 3], scaling [N, 6], rotation [N, 4], opacity [N, 1];
     keep: [N] bool, the anchors this step's hidden branch may use (None: all).
+
+    serving_rows: True where the tensors hold a key's S serving anchors only, in the order of its
+    serving index, instead of the model's N (a replayed hidden branch's buffers,
+    ``secure.hidden_graph``): the key decodes every row. spread: attribute name -> [1, ...], the
+    standard deviation of that attribute's columns over the model's N anchors, which scales noise
+    on these rows (None, or a name missing: their own columns' spread).
     """
 
     xyz: torch.Tensor
@@ -67,20 +73,23 @@ class PerturbedAnchors(AnchorSizes):
     rotation: torch.Tensor
     opacity: torch.Tensor
     keep: torch.Tensor | None = None
+    serving_rows: bool = False
+    spread: dict | None = None
 
 
 def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
             public_opacity: torch.Tensor | None = None, draws: torch.Generator | None = None) -> PerturbedAnchors:
-    """One draw of ``attacks`` (from ``parse_robust``) on an ``AnchorModel``'s tensors, in order.
+    """One draw of ``attacks`` (from ``parse_robust``) on an ``AnchorModel``'s tensors (or on
+    ``PerturbedAnchors``, a replayed step's serving rows: dropout then drops that fraction of them), in order.
 
     public_opacity: [N] total public opacity of each anchor in this step's view, NaN for anchors
     the view did not decode (needed by ``prune-opacity``). Masks, noise and the strengths of the
     DEVICE_DRAWN attacks are drawn from ``draws`` (default: a generator on the anchors' device
     seeded from ``generator``, or ``generator`` itself where the anchors are on its device); the
     other attacks' strengths from ``generator``. Perturbing with only DEVICE_DRAWN attacks reads
-    nothing back to the host (``secure.finish_graph`` captures it)."""
-    view = PerturbedAnchors(anchors.xyz, anchors.feat, anchors.offsets, anchors.scaling, anchors.rotation,
-                            anchors.opacity)
+    nothing back to the host (``secure.hidden_graph`` captures it)."""
+    view = dataclasses.replace(anchors) if isinstance(anchors, PerturbedAnchors) else \
+        PerturbedAnchors(anchors.xyz, anchors.feat, anchors.offsets, anchors.scaling, anchors.rotation, anchors.opacity)
     draws = _device_generator(generator, view.xyz.device) if draws is None else draws
     for attack in attacks:
         if attack.name in DEVICE_DRAWN:
@@ -97,7 +106,8 @@ def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
         elif attack.name in ("noise-xyz", "noise-feat"):
             name = attack.name.removeprefix("noise-")
             values = getattr(view, name)
-            setattr(view, name, values + column_noise(values, u.to(values.device) * attack.args[0], draws))
+            spread = (view.spread or {}).get(name)
+            setattr(view, name, values + column_noise(values, u.to(values.device) * attack.args[0], draws, spread))
         else:  # quantize: straight through, so the parameters still get the gradient of the quantised values
             bits = attack.args[0] + int(u * (QUANTIZE_MAX_BITS - attack.args[0] + 1))
             for name in ("xyz", "feat", "scaling"):

@@ -8,7 +8,6 @@ backward through all renders, then the region-aware strategy looks at every bran
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import math
@@ -24,7 +23,7 @@ from ..train.base import evaluated, frozen
 from ..train.losses import psnr
 from ..train.schedules import exponential_lr
 from ..train.trainer import ScaffoldTrainer
-from . import finish_graph
+from . import hidden_graph
 from .crop import Crop, box_crop
 from .heads import PrivateHeads
 from .keyed_bits import new_seed
@@ -106,9 +105,9 @@ class SecureTrainer(ScaffoldTrainer):
         # Made when the phase begins (or a checkpoint of it is restored): it holds the private
         # heads alone, so nothing else can move in the phase.
         self._finish_optimizer = None
-        # The phase's step replayed from CUDA graphs (secure.finish_graph), made at its first step
-        # where it can be.
-        self._finish_graph = None
+        # Each phase's hidden branch replayed from CUDA graphs (secure.hidden_graph): phase ->
+        # HiddenGraph, made at its first hidden step where it can be.
+        self._graphs = {}
         # The running mean of the private heads' weights late in the phase (_average_private):
         # {"count": steps folded in, "weights": [tensor per parameter of the finishing optimizer]}.
         self._finish_average = None
@@ -179,7 +178,7 @@ class SecureTrainer(ScaffoldTrainer):
         The release (anchors and public heads, and so the cover, the anchor cloud and the bits)
         stays as the joint run left it (without HDGER that includes its explicit hidden offsets: only
         the private MLPs train). On CUDA the step is replayed from graphs where
-        ``finish_graph.replayable`` allows, after a few steps op by op. Reports "psnr" as the first
+        ``hidden_graph.replayable`` allows, after a few steps op by op. Reports "psnr" as the first
         hidden render's PSNR and "phase": "finish"."""
         optimizer = self._finishing_optimizer()
         # From FINISH_LR_FROM of the schedule at the phase's first step to its end at the last.
@@ -190,20 +189,24 @@ class SecureTrainer(ScaffoldTrainer):
                 group["lr"].fill_(lr)
             else:
                 group["lr"] = lr
-        if self._finish_graph is None and finish_graph.replayable(self):
-            self._finish_graph = finish_graph.FinishGraph(self)
-        graph = self._finish_graph
-        if graph is not None and graph.ready:
-            loss, extra, skipped = graph.step(index)
-            extra = evaluated({**extra, **skipped})
+        joint = self._graphs.pop(hidden_graph.JOINT, None)
+        if joint is not None:  # its rasterizer entries are the phase's to take
+            joint.close()
+        graph = self._hidden_graph(hidden_graph.FINISH)
+        if graph is not None:
+            loss, extra, entry = graph.run(step, index)
+            extra = evaluated({**extra, **self.checked_update(optimizer, [entry], lambda: graph.update(optimizer))})
         else:
-            with graph.eager_stream() if graph is not None else contextlib.nullcontext():
-                loss, extra = self._eager_finish_step(step, index, optimizer)
-            if graph is not None:
-                graph.after_eager(step, index)
+            loss, extra = self._eager_finish_step(step, index, optimizer)
         self._average_private(step)
         first = next(value for key, value in extra.items() if key.startswith("psnr_hidden"))
         return {"loss": loss.item(), "psnr": first, "phase": "finish", **self.size_stats(), **extra}
+
+    def _hidden_graph(self, phase: str) -> hidden_graph.HiddenGraph | None:
+        """The hidden branch of ``phase`` replayed from CUDA graphs, where ``hidden_graph.replayable``."""
+        if phase not in self._graphs:
+            self._graphs[phase] = hidden_graph.HiddenGraph(self, phase) if hidden_graph.replayable(self, phase) else None
+        return self._graphs[phase]
 
     def _eager_finish_step(self, step: int, index: int, optimizer) -> tuple[torch.Tensor, dict]:
         """A finishing step op by op: (its loss, the numbers it reports)."""
@@ -269,6 +272,12 @@ class SecureTrainer(ScaffoldTrainer):
         stride = self.secure.hidden_stride
         if step % stride:
             return {}  # a plain step between hidden ones (SecureConfig.hidden_stride)
+        graph = self._hidden_graph(hidden_graph.JOINT)
+        if graph is not None:
+            _, extra, entry = graph.run(step, index)
+            graph.scatter(self.model.anchors)
+            renders.append(entry)  # the strategy of the cover mode reads no hidden Gaussian
+            return extra
         public = branches["public"][0]
         anchors = self._attacked_anchors(lambda: public, self.robust)
         # Same anchors as the public render: its visibility test holds for the same view.
@@ -294,11 +303,12 @@ class SecureTrainer(ScaffoldTrainer):
     def _hidden_losses(self, index: int, renders: list, step: int, anchors, visible, scale: float,
                        views: dict | None = None):
         """Appends each secret's hidden render of training view ``index`` (or of its image's view)
-        to ``renders``, weighted λ·``scale``. anchors: the attacked copy or None; visible: the public
-        render's visibility of view ``index`` for those anchors, or None; views: secret -> (camera,
-        target [H, W, 3]) that stand for that view (a replayed step's fixed buffers,
-        ``secure.finish_graph``). Returns (the numbers to report, [(gaussians, info, weight)] of
-        each hidden render for the strategy)."""
+        to ``renders``, weighted λ·``scale``. anchors: the attacked copy or None, or secret -> the
+        rows it decodes (a replayed step's serving rows, ``secure.hidden_graph``); visible: the
+        public render's visibility of view ``index`` for those anchors, or None; views: secret ->
+        (camera, target [H, W, 3]) that stand for that view (a replayed step's fixed buffers).
+        Returns (the numbers to report, [(gaussians, info, weight)] of each hidden render for the
+        strategy)."""
         extra, hidden = {}, []
         for secret, p in enumerate(self.payloads):
             view = index if p.views is not None else p.image_view
@@ -312,7 +322,8 @@ class SecureTrainer(ScaffoldTrainer):
             # The Gaussians that fail the opacity test stay in the render at opacity 0 (a host
             # synchronisation fewer) unless the strategy reads the hidden Gaussians row by row.
             compact = self.strategy.reads_hidden
-            out = self.render_hidden(camera, camera_index=view, step=step, anchors=anchors, secret=secret,
+            decoded = anchors.get(secret) if isinstance(anchors, dict) else anchors
+            out = self.render_hidden(camera, camera_index=view, step=step, anchors=decoded, secret=secret,
                                      visible=visible if view == index else None, compact=compact,
                                      replay_raster=self.replays_hidden_raster(secret, compact, crop))
             share = 1.0
@@ -485,11 +496,13 @@ class SecureTrainer(ScaffoldTrainer):
                 p.bits = message.to(self.device)
                 private.set_message(message_string(p.bits), seed, private.bits.cell)
                 private.to(self.device)
-        self._finish_optimizer = self._finish_graph = None
+        for graph in filter(None, self._graphs.values()):
+            graph.close()
+        self._finish_optimizer, self._graphs = None, {}
         if state.get("finish_optimizer") is not None:
             optimizer = self._finishing_optimizer()
             optimizer.load_state_dict(state["finish_optimizer"])
-            if self.device.type != "cuda":  # written by a replayed phase on CUDA (finish_graph)
+            if self.device.type != "cuda":  # written by a replayed phase on CUDA (hidden_graph)
                 for group in optimizer.param_groups:
                     group["capturable"], group["lr"] = False, float(group["lr"])
         # None: written before the averaging window (or before the averaging existed: it restarts here).

@@ -99,8 +99,14 @@ class ViewTrainer:
         target, weight)]; the photometric terms of images of one shape in one batched call (a SecureGS
         step's public and hidden renders: half the launches of separate calls, the same sum up to float
         rounding). share: ``out["pixel_share"]`` for a render of part of a view (the part's share of
-        the view's pixels, the rest being background in both; secure.crop), else 1. Subclasses
-        change a render's loss through ``regularizer``."""
+        the view's pixels, the rest being background in both; secure.crop), else 1. An entry whose
+        out holds "loss" (a 0-d tensor without gradient: renders whose loss was taken and
+        differentiated elsewhere, weighted) adds that. Subclasses change a render's loss through
+        ``regularizer``."""
+        # A hidden branch replayed from a CUDA graph (secure.hidden_graph) took its loss and backward
+        # there: its weighted loss joins the sum as a number.
+        computed = [out["loss"] for out, _, _ in renders if "loss" in out]
+        renders = [render for render in renders if "loss" not in render[0]]
         images = [out["image"] for out, _, _ in renders]
         targets = [target for _, target, _ in renders]
         if len({image.shape for image in images}) > 1:
@@ -115,6 +121,8 @@ class ViewTrainer:
             term = term if regularizer is None else term + regularizer
             term = term if weight == 1.0 else weight * term
             loss = term if loss is None else loss + term
+        for term in computed:
+            loss = loss + term
         return loss
 
     def regularizer(self, out: dict) -> torch.Tensor | None:
