@@ -292,8 +292,9 @@ class SecureConfig:
         as many anchors, by rank (``SecureModel._decoding_rows``). The whole hidden branch
         (attacks, decoding, rasterize, loss, backward; in the finishing phase also Adam) is then
         replayed from CUDA graphs where ``secure.hidden_graph.replayable`` allows (training views
-        of one size, whole views, an object or scene payload, the phase's attacks of prune-random
-        and noise-feat only, drawn from the device's generator on the serving rows alone);
+        of one size, whole views, an object payload in the cover mode, the phase's attacks of
+        prune-random and noise-feat only, drawn on the serving rows alone from the device's
+        generator, which a checkpoint does not hold: a resumed run draws other attacks);
         otherwise it runs op by op. Evaluation (no gradients) and the CPU decode op by op, as
         everything does with it off.
     """

@@ -192,11 +192,14 @@ class _Render:
 
 
 def settle() -> None:
-    """Read every entry's last forward (``check_pending``): a caller's CUDA graph that records
-    captured renders (secure.hidden_graph) cannot wait for one while it captures."""
+    """Read the last forward of every entry not awaiting its backward (``check_pending``): a
+    caller's CUDA graph that records captured renders (secure.hidden_graph) cannot wait for one
+    while it captures, and takes only such entries. A busy entry's render is its caller's to ask
+    about (``complete``) before it is read."""
     for entries in _POOL.values():
         for entry in entries:
-            entry.check_pending()
+            if not entry.busy:
+                entry.check_pending()
 
 
 def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Captured:

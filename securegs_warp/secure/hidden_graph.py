@@ -20,16 +20,23 @@ gradients' finiteness and the renders' completeness (``complete``) as for an eag
 that overflowed its capacity grows it, and the graphs are captured again.
 
 The attacks act on the serving rows alone, which are all the hidden branch reads: dropout drops
-the drawn fraction of them (of all anchors op by op), and feature noise is scaled by the spread of
-the features over all anchors (``PerturbedAnchors.spread``), as op by op. The same distribution,
-other random numbers. The graphs are captured after WARMUP steps that run the same ops eagerly
-(kernels loaded, the rasterizer's capacity set, Adam's state made); the last of them runs on a
-side stream, as torch asks of a capture's warm-up.
+exactly the drawn fraction of them (op by op it drops that fraction of all anchors, and so about
+that fraction of the serving ones: each row is dropped as often, the count varies less), and
+feature noise is scaled by the spread of the features over all anchors (``PerturbedAnchors.spread``),
+as op by op. The graphs are captured after WARMUP steps that run the same ops eagerly (kernels
+loaded, the rasterizer's capacity set, Adam's state made); the last of them runs on a side stream,
+as torch asks of a capture's warm-up.
 
-Two differences from a step op by op: a non-finite rasterizer input does not raise (the eager
-rasterize checks its inputs before it sorts; a replay cannot) but gives non-finite gradients, and
-the step is skipped and logged as such; and the graphs, with the memory of a step's intermediate
-tensors, live until the phase ends (``close``).
+Differences from a step op by op:
+- The attacks are drawn from the device's default generator (seeded by the run's seed), which a
+  checkpoint does not hold: a resumed run draws other attacks than an uninterrupted one would. Nor
+  do they advance the trainer's generator, so the order of the training views differs from a run
+  whose hidden branch runs op by op.
+- A non-finite rasterizer input does not raise (the eager rasterize checks its inputs before it
+  sorts; a replay cannot) but gives non-finite gradients, and the step is skipped and logged as such.
+- The graphs, with the memory of a step's intermediate tensors, live until they are dropped
+  (``close``: when the finishing phase begins, when its trainer is restored from a checkpoint) or
+  their trainer is.
 """
 from __future__ import annotations
 
@@ -52,7 +59,8 @@ WARMUP = 3
 # draws on the device too, but it also changes which anchors serve (by rank), which the gathered
 # rows cannot: a run that trains against it runs op by op.
 REPLAYED_ATTACKS = ("prune-random", "noise-feat")
-# What the decoding reads of each serving anchor.
+# The attributes of each serving anchor gathered (all of PerturbedAnchors': the private decoding
+# reads xyz, feat and scaling, the others are kept so that the rows are the anchors' every attribute).
 ROW_FIELDS = ("xyz", "feat", "offsets", "scaling", "rotation", "opacity")
 # The rows' attributes that take the hidden loss's gradient in the joint run.
 TRAINED_FIELDS = ("feat", "scaling")
@@ -71,24 +79,32 @@ def replayable(trainer, phase: str) -> bool:
         return False
     if len({(cam.width, cam.height) for cam in trainer.scene.train}) > 1:  # the fixed buffers hold one view
         return False
-    rendered = [secret for secret, p in enumerate(trainer.payloads) if p.has_images]
+    rendered = _rendered(trainer)
     return bool(rendered) and all(
         trainer.payloads[secret].views is not None and not trainer.crops_hidden(secret)
         and trainer.replays_hidden_raster(secret, trainer.strategy.reads_hidden, None) for secret in rendered)
 
 
+def _rendered(trainer) -> list[int]:
+    """The secrets of ``trainer`` that have a hidden render (whose rows a graph decodes)."""
+    return [secret for secret, p in enumerate(trainer.payloads) if p.has_images]
+
+
 class ServingRows:
-    """Fixed buffers holding one key's S serving anchors' rows (``ROW_FIELDS``, in the order of its
-    serving index) and the model's feature spread: ``view`` is the ``PerturbedAnchors`` the key
-    decodes, whose TRAINED_FIELDS are leaves taking gradients when ``trained``. ``index`` [S] long:
-    the model rows they were gathered from."""
+    """Fixed buffers holding one key's S serving anchors' rows, in the order of its serving index,
+    and the model's feature spread: ``view`` is the ``PerturbedAnchors`` (``serving_rows``) the key
+    decodes, xyz [S, 3], feat [S, d], offsets [S, k, 3], scaling [S, 6], rotation [S, 4], opacity
+    [S, 1], spread {"feat": [1, d]}; its TRAINED_FIELDS are leaves taking gradients when ``trained``.
+    ``index`` [S] long: the model rows they were gathered from. Made from ``anchors`` (an
+    ``AnchorModel``) and ``index``, and refilled every step (``fill``)."""
 
     def __init__(self, anchors, index: torch.Tensor, trained: bool):
-        rows = {name: getattr(anchors, name).detach()[index] for name in ROW_FIELDS}
+        rows = {name: torch.empty_like(getattr(anchors, name).detach()[:len(index)]) for name in ROW_FIELDS}
         for name in TRAINED_FIELDS:
             rows[name].requires_grad_(trained)
-        self.index = index.clone()
-        self.view = PerturbedAnchors(**rows, serving_rows=True, spread={"feat": column_spread(anchors.feat)})
+        self.index = torch.empty_like(index)
+        self.view = PerturbedAnchors(**rows, serving_rows=True, spread={"feat": torch.empty_like(anchors.feat.detach()[:1])})
+        self.fill(anchors, index)
 
     def fill(self, anchors, index: torch.Tensor) -> None:
         """Copy the rows ``index`` [S] of ``anchors`` and the spread of its features in."""
@@ -98,9 +114,9 @@ class ServingRows:
                 torch.index_select(getattr(anchors, name).detach(), 0, index, out=getattr(self.view, name))
             self.view.spread["feat"].copy_(column_spread(anchors.feat))
 
-    def scatter(self, anchors, keep: bool) -> None:
+    def scatter(self, anchors, retain: bool) -> None:
         """Add the rows' gradients into ``anchors``' features and scalings (before the public
-        backward, which adds its own). keep: leave them in the rows (a graph's buffers, which the
+        backward, which adds its own). retain: leave them in the rows (a graph's buffers, which the
         next replay overwrites); else they are cleared (the next backward op by op would add to them)."""
         for name in TRAINED_FIELDS:
             leaf = getattr(self.view, name)
@@ -110,7 +126,7 @@ class ServingRows:
             if param.grad is None:
                 param.grad = torch.zeros_like(param)
             param.grad.index_add_(0, self.index, leaf.grad)
-            if not keep:
+            if not retain:
                 leaf.grad = None
 
 
@@ -130,9 +146,8 @@ class HiddenGraph:
         self.side = torch.cuda.Stream(trainer.device)
         index_of = trainer.device.index if trainer.device.index is not None else torch.cuda.current_device()
         self.draws = torch.cuda.default_generators[index_of]
-        # What the buffers and graphs were made for: each rendered secret's serving count, and the
-        # features' gradient share the decoding applies (it changes at feature_grad_until).
-        self.shape = None
+        # What the buffers and graphs were made for (``_made_for``).
+        self.made_for = None
         # secret -> ServingRows; the camera every secret renders (its matrices fixed tensors);
         # secret -> (that camera, target buffer [H, W, 3]).
         self.rows, self.camera, self.views = {}, None, {}
@@ -156,18 +171,20 @@ class HiddenGraph:
         t = self.trainer
         return [p for secret in self.rows for p in t.model.secrets[secret].parameters()]
 
-    def _shape(self, step: int) -> tuple:
+    def _made_for(self, step: int) -> tuple:
+        """(each rendered secret's serving count, the features' gradient share the decoding applies
+        at ``step``): buffers and graphs are made again when it changes (a refit to another count;
+        feature_grad_until)."""
         t = self.trainer
-        counts = tuple(len(t.model.secrets[s].serving_index(t.model.anchors.xyz))
-                       for s, p in enumerate(t.payloads) if p.has_images)
+        counts = tuple(len(t.model.secrets[s].serving_index(t.model.anchors.xyz)) for s in _rendered(t))
         return counts, t.current_feature_grad(step) if self.phase == JOINT else 0.0
 
     def run(self, step: int, index: int) -> tuple[torch.Tensor, dict, tuple]:
         t = self.trainer
-        shape = self._shape(step)
-        if shape != self.shape:
+        made_for = self._made_for(step)
+        if made_for != self.made_for:
             self._make_buffers(index)
-            self.shape = shape
+            self.made_for = made_for
         anchors = t.model.anchors
         for secret, rows in self.rows.items():
             rows.fill(anchors, t.model.secrets[secret].serving_index(anchors.xyz))
@@ -175,9 +192,9 @@ class HiddenGraph:
             fixed.copy_(value)
         for secret, (_, target) in self.views.items():
             target.copy_(t.payloads[secret].views[index])
-        if self.graphs is None and self.eager_steps == WARMUP:
+        if not self.ready and self.eager_steps >= WARMUP and self._capturable():
             self._capture(step, index)
-        if self.graphs is not None:
+        if self.ready:
             self.graphs[0].replay()
             for p, grad in self.grads:
                 p.grad = grad
@@ -200,8 +217,7 @@ class HiddenGraph:
         t = self.trainer
         anchors = t.model.anchors
         self.rows = {secret: ServingRows(anchors, t.model.secrets[secret].serving_index(anchors.xyz),
-                                         trained=self.phase == JOINT)
-                     for secret, p in enumerate(t.payloads) if p.has_images}
+                                         trained=self.phase == JOINT) for secret in _rendered(t)}
         self.camera = copy.copy(t.scene.train[index])
         self.camera.device_tensors = tuple(x.clone() for x in camera_tensors(t.scene.train[index], t.device))
         self.views = {secret: (self.camera, t.payloads[secret].views[index].clone()) for secret in self.rows}
@@ -219,6 +235,15 @@ class HiddenGraph:
         loss.backward()
         status = torch.stack([out["info"]["n_intersections"] <= out["info"]["capacity"] for out, _, _ in renders])
         return loss, extra, renders, status
+
+    def _capturable(self) -> bool:
+        """Whether the graphs can be captured now: in the finishing phase Adam's state must exist (a
+        capture would record its zero-filling, to be replayed at every step), which it does unless
+        every warm-up step was skipped."""
+        if self.phase == JOINT:
+            return True
+        optimizer = self.trainer._finishing_optimizer()
+        return all(p in optimizer.state for group in optimizer.param_groups for p in group["params"])
 
     def _capture(self, step: int, index: int) -> None:
         t = self.trainer
@@ -257,11 +282,11 @@ class HiddenGraph:
     def scatter(self, anchors) -> None:
         """After ``run`` in the joint run: add the rows' gradients into ``anchors``' (``ServingRows.scatter``)."""
         for rows in self.rows.values():
-            rows.scatter(anchors, keep=self.graphs is not None)
+            rows.scatter(anchors, retain=self.ready)
 
     def update(self, optimizer: torch.optim.Optimizer) -> None:
         """The finishing phase's update of the private heads: replayed once captured."""
-        if self.graphs is not None:
+        if self.ready:
             self.graphs[1].replay()
         else:
             optimizer.step()
@@ -270,8 +295,8 @@ class HiddenGraph:
         """Whether every hidden render of the step held all its tile intersections (read after the
         step's gradient check, so it waits for nothing). A replayed render that did not grows its
         capacity, and the graphs are captured again after WARMUP eager steps."""
-        if self.graphs is None:
-            return all(complete() for complete in self.eager_complete)
+        if not self.ready:
+            return all([complete() for complete in self.eager_complete])  # each asked: see raster_graph
         flags = self.status.tolist()
         if all(flags):
             return True
@@ -286,10 +311,10 @@ class HiddenGraph:
         capture's, renders may take them)."""
         for lease in self.leases:
             lease.release()
-        if self.graphs is not None:
-            for p, _ in self.grads:
-                p.grad = None
+        for p, _ in self.grads:
+            p.grad = None
         self.graphs, self.leases, self.grads, self.infos, self.eager_steps = None, [], [], [], 0
+        self.loss = self.extra = self.status = self.warp_capture = None
 
 
 def _make_capturable(optimizer: torch.optim.Adam) -> None:

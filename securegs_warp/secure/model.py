@@ -98,7 +98,8 @@ class SecureModel(ScaffoldModel):
         ``serving`` nearest), an attack's flips at the radius included, and its row count stays
         fixed, so the captured decoding and rasterize still replay.
 
-        ``PerturbedAnchors`` of a key's serving rows only (``serving_rows``) decode every row."""
+        ``PerturbedAnchors`` of a key's S serving rows only (``serving_rows``) decode every row:
+        ([S] True, arange(S), their ``keep``)."""
         keep = getattr(anchors, "keep", None)
         if getattr(anchors, "serving_rows", False):
             n, device = anchors.num_anchors, anchors.xyz.device

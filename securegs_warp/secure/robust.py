@@ -53,8 +53,9 @@ def parse_robust(text: str, option: str = "robust") -> list[Attack]:
 @dataclasses.dataclass
 class PerturbedAnchors(AnchorSizes):
     """What the hidden decoding reads of an ``AnchorModel``, perturbed for one step. Tensors are N
-    rows (the anchors' own N: dropout is ``keep``, not removal, so indices match the model's).
-    Gradients flow through the perturbations to the model's parameters.
+    rows (the anchors' own N: dropout is ``keep``, not removal, so indices match the model's), or S
+    with ``serving_rows`` (N below reads S). Gradients flow through the perturbations to the tensors
+    they were made from: the model's parameters, or a replayed step's row buffers.
 
     xyz [N, 3], feat [N, d], offsets [N, k, 3], scaling [N, 6], rotation [N, 4], opacity [N, 1];
     keep: [N] bool, the anchors this step's hidden branch may use (None: all).

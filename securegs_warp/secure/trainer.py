@@ -106,7 +106,7 @@ class SecureTrainer(ScaffoldTrainer):
         # heads alone, so nothing else can move in the phase.
         self._finish_optimizer = None
         # Each phase's hidden branch replayed from CUDA graphs (secure.hidden_graph): phase ->
-        # HiddenGraph, made at its first hidden step where it can be.
+        # HiddenGraph, made at its first hidden step where it can be (None: op by op).
         self._graphs = {}
         # The running mean of the private heads' weights late in the phase (_average_private):
         # {"count": steps folded in, "weights": [tensor per parameter of the finishing optimizer]}.
@@ -276,7 +276,8 @@ class SecureTrainer(ScaffoldTrainer):
         if graph is not None:
             _, extra, entry = graph.run(step, index)
             graph.scatter(self.model.anchors)
-            renders.append(entry)  # the strategy of the cover mode reads no hidden Gaussian
+            renders.append(entry)
+            # No branches["hidden"]: the strategy of the cover mode reads no hidden Gaussian.
             return extra
         public = branches["public"][0]
         anchors = self._attacked_anchors(lambda: public, self.robust)
@@ -287,18 +288,17 @@ class SecureTrainer(ScaffoldTrainer):
             branches["hidden"] = hidden
         return extra
 
-    def _attacked_anchors(self, public, attacks: list, draws: torch.Generator | None = None):
+    def _attacked_anchors(self, public, attacks: list):
         """Robust training: this step's copy of the anchors attacked by ``attacks`` (``self.robust``
         in the joint run, ``self.finish_robust`` in the finishing phase) for the hidden renders (None
         without attacks; the bits are projected into every anchor after the update, see
         after_update). ``public()``: the Gaussians of the step's public render, read only by
-        prune-opacity (its scatter of the public opacities costs a host synchronisation). draws:
-        the generator of the masks and noise (``perturb``)."""
+        prune-opacity (its scatter of the public opacities costs a host synchronisation)."""
         if not attacks:
             return None
         opacity = public_opacity(public(), self.model.anchors) \
             if any(a.name == "prune-opacity" for a in attacks) else None
-        return perturb(self.model.anchors, attacks, self.generator, opacity, draws)
+        return perturb(self.model.anchors, attacks, self.generator, opacity)
 
     def _hidden_losses(self, index: int, renders: list, step: int, anchors, visible, scale: float,
                        views: dict | None = None):

@@ -201,9 +201,11 @@ class ViewTrainer:
 
     def extra_losses(self, index: int, renders: list, branches: dict, step: int) -> dict:
         """Hook for further losses: appends (out, target, weight) to ``renders`` for each further render
-        whose weighted ``image_loss`` joins the public one's (``image_losses``), and returns numbers to
-        report, each a value or a function that gives it at the end of the step; a hidden render adds
-        its (gaussians, info) to ``branches`` under "hidden". Plain training has the public loss only."""
+        whose weighted ``image_loss`` joins the public one's (``image_losses``; or ({"loss": a weighted
+        loss already differentiated, "info": {"complete": ...}}, None, 1.0) for renders whose loss was
+        taken and differentiated elsewhere), and returns numbers to report, each a value or a function
+        that gives it at the end of the step; a hidden render adds its (gaussians, info) to
+        ``branches`` under "hidden". Plain training has the public loss only."""
         return {}
 
     @torch.no_grad()
