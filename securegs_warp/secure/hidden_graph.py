@@ -59,8 +59,8 @@ WARMUP = 3
 # draws on the device too, but it also changes which anchors serve (by rank), which the gathered
 # rows cannot: a run that trains against it runs op by op.
 REPLAYED_ATTACKS = ("prune-random", "noise-feat")
-# The attributes of each serving anchor gathered (all of PerturbedAnchors': the private decoding
-# reads xyz, feat and scaling, the others are kept so that the rows are the anchors' every attribute).
+# The attributes gathered of each serving anchor: all of PerturbedAnchors' (the private decoding
+# reads xyz, feat and scaling; the rest keep the rows a whole PerturbedAnchors).
 ROW_FIELDS = ("xyz", "feat", "offsets", "scaling", "rotation", "opacity")
 # The rows' attributes that take the hidden loss's gradient in the joint run.
 TRAINED_FIELDS = ("feat", "scaling")

@@ -122,7 +122,7 @@ class ViewTrainer:
             term = term if weight == 1.0 else weight * term
             loss = term if loss is None else loss + term
         for term in computed:
-            loss = loss + term
+            loss = term if loss is None else loss + term
         return loss
 
     def regularizer(self, out: dict) -> torch.Tensor | None:
