@@ -44,7 +44,10 @@ class SectionTimer:
         self._names: list[str] = []
 
     def _sync(self):
-        if self.cuda:
+        # Inside a CUDA graph's capture (a replayed hidden branch capturing again after an overflow,
+        # secure.hidden_graph) a synchronisation would break the capture: the section then times
+        # host work only.
+        if self.cuda and not torch.cuda.is_current_stream_capturing():
             torch.cuda.synchronize()
 
     @property
