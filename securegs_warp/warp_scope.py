@@ -4,10 +4,10 @@ import torch
 import warp as wp
 
 
-# (torch device, stream handle) -> Warp's wrapper of that stream, kept for as long as the process runs. A wrapper that
-# is garbage-collected unregisters its CUDA stream from Warp, and with it any capture Warp was told
-# of on that stream (secure.hidden_graph's); one wrapper per stream also saves making one per
-# scope. Torch keeps a small pool of streams, so this stays small.
+# (torch device, stream handle) -> Warp's wrapper of that stream, kept for as long as the process
+# runs. A wrapper that is garbage-collected unregisters its CUDA stream from Warp, and with it any
+# capture Warp was told of on that stream (secure.hidden_graph's); one wrapper per stream also saves
+# making one per scope. Torch keeps a small pool of streams, so this stays small.
 _WARP_STREAMS: dict = {}
 
 

@@ -446,3 +446,14 @@ def test_the_rows_gradients_add_to_what_the_anchors_hold():
         assert (anchors.feat.grad[serving] == 3.0).all() and (anchors.feat.grad[~serving] == 2.0).all()
         assert anchors.scaling.grad is None  # the rows' scalings held no gradient
         assert (rows.view.feat.grad is not None) == retain
+
+
+def test_losses_taken_elsewhere_join_the_step_loss_as_numbers():
+    """image_losses adds an entry's precomputed loss (a replayed hidden branch's) to the renders'
+    own, and takes a list of such entries alone."""
+    t = _trainer("cpu")
+    out = t.render(t.scene.train[0], camera_index=0)
+    own = t.image_losses([(out, t._targets[0], 1.0)])
+    taken = ({"loss": torch.tensor(0.25), "info": {}}, None, 1.0)
+    assert torch.allclose(t.image_losses([(out, t._targets[0], 1.0), taken]), own + 0.25)
+    assert t.image_losses([taken, taken]).item() == 0.5

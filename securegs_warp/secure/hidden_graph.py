@@ -95,20 +95,21 @@ class ServingRows:
     and the model's feature spread: ``view`` is the ``PerturbedAnchors`` (``serving_rows``) the key
     decodes, xyz [S, 3], feat [S, d], offsets [S, k, 3], scaling [S, 6], rotation [S, 4], opacity
     [S, 1], spread {"feat": [1, d]}; its TRAINED_FIELDS are leaves taking gradients when ``trained``.
-    ``index`` [S] long: the model rows they were gathered from. Made from ``anchors`` (an
-    ``AnchorModel``) and ``index``, and refilled every step (``fill``)."""
+    ``index`` [S] long: the model rows they were last gathered from (the key's serving index, read
+    outside any graph). Made from ``anchors`` (an ``AnchorModel``) and ``index``, and refilled every
+    step (``fill``)."""
 
     def __init__(self, anchors, index: torch.Tensor, trained: bool):
         rows = {name: torch.empty_like(getattr(anchors, name).detach()[:len(index)]) for name in ROW_FIELDS}
         for name in TRAINED_FIELDS:
             rows[name].requires_grad_(trained)
-        self.index = torch.empty_like(index)
+        self.index = index
         self.view = PerturbedAnchors(**rows, serving_rows=True, spread={"feat": torch.empty_like(anchors.feat.detach()[:1])})
         self.fill(anchors, index)
 
     def fill(self, anchors, index: torch.Tensor) -> None:
         """Copy the rows ``index`` [S] of ``anchors`` and the spread of its features in."""
-        self.index.copy_(index)
+        self.index = index
         with torch.no_grad():
             for name in ROW_FIELDS:
                 torch.index_select(getattr(anchors, name).detach(), 0, index, out=getattr(self.view, name))

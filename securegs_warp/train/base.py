@@ -111,8 +111,10 @@ class ViewTrainer:
         targets = [target for _, target, _ in renders]
         if len({image.shape for image in images}) > 1:
             terms = [photometric_loss(image, target, self.config.ssim_weight) for image, target in zip(images, targets)]
-        else:
+        elif images:
             terms = batch_photometric_loss(torch.stack(images), torch.stack(targets), self.config.ssim_weight).unbind()
+        else:  # only renders whose loss was taken elsewhere
+            terms = []
         loss = None
         for term, (out, _, weight) in zip(terms, renders):
             share = out.get("pixel_share")
