@@ -8,6 +8,8 @@ Numerical choices (each keeps a hard case finite and close to the float64 refere
   transform loses ~1e-3 in camera space, far more than the 1e-4 image tolerance.
 - The 2D covariance is built from its square root A = J·W·R·S (2×3), so det(AAᵀ) = |a0 × a1|²
   (Lagrange's identity) is never negative, even for anisotropy 1e6 where c00·c11 − c01² cancels.
+- The antialiasing ratio det(Σ)/det(Σ + εI) is taken in float64: it stays finite for screen-space
+  deviations whose determinants overflow float32.
 - Quaternions are normalised with a floor on their norm: a zero quaternion gives the identity
   rotation and finite gradients instead of NaN.
 """
@@ -18,8 +20,8 @@ import warp as wp
 from .records import COLOR_STORAGES, R_COLOR, R_CONIC, R_DEPTH, R_OPACITY, R_XY, colors_in_record, record_width
 
 # Radius rules (compile-time): how far from its centre a 2D Gaussian is allowed to reach.
-RADIUS_RULES = ("opacity_aware", "3sigma", "tight")
-_OPACITY_AWARE, _THREE_SIGMA, _TIGHT = 0, 1, 2
+RADIUS_RULES = ("opacity_aware", "3sigma")
+_OPACITY_AWARE, _THREE_SIGMA = 0, 1
 
 QUAT_NORM_FLOOR = 1.0e-12
 
@@ -46,8 +48,8 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
 
     antialiased: multiply opacity by the Mip-Splatting compensation sqrt(det(Σ)/det(Σ + εI)).
     radius_rule: "opacity_aware" (gsplat 1.5: per-axis, extent min(3.33, sqrt(2 ln(o/α_min)))),
-        "3sigma" (original 3DGS: square, 3·sqrt(λ_max), no opacity test),
-        "tight" (per-axis opacity-aware radius capped by the major axis and the image size).
+        "3sigma" (original 3DGS: square, 3·sqrt(λ_max), no opacity test). The opacity-aware extent
+        along each axis is already the ellipse's exact one (e·sqrt(Σ_xx)), so no tighter rule exists.
     fast_math: compile with Warp's ``fast_math`` module option (CUDA: nvcc ``--use_fast_math``,
         approximate exp/log/sqrt/division and flushed denormals; the float64 camera transform is
         unaffected). Warp 1.19 does not pass it to its CPU compiler: there it changes nothing.
@@ -177,7 +179,15 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
 
             opacity = opacities[i]
             if wp.static(antialiased):
-                opacity = opacity * wp.sqrt(wp.max(det_orig / det, 0.0) + 1.0e-30)
+                # The ratio in float64: past ~4e9 px of screen-space deviation both determinants
+                # overflow float32, and inf / inf (and its adjoint) would be NaN.
+                a0d = wp.vec3d(wp.float64(a0[0]), wp.float64(a0[1]), wp.float64(a0[2]))
+                a1d = wp.vec3d(wp.float64(a1[0]), wp.float64(a1[1]), wp.float64(a1[2]))
+                det_orig_d = wp.length_sq(wp.cross(a0d, a1d))
+                e = wp.float64(eps2d)
+                det_d = det_orig_d + e * (wp.float64(c00) + wp.float64(c11)) + e * e
+                ratio = wp.float32(det_orig_d / det_d)
+                opacity = opacity * wp.sqrt(wp.max(ratio, 0.0) + 1.0e-30)
 
             if det > 0.0:
                 if wp.static(rule == _THREE_SIGMA):
@@ -195,12 +205,6 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
                                           wp.min(3.33, wp.sqrt(wp.max(log_ratio, 1.0e-30))), 0.0)
                         rx = wp.ceil(extend * wp.sqrt(b00))
                         ry = wp.ceil(extend * wp.sqrt(b11))
-                        if wp.static(rule == _TIGHT):
-                            half_tr = 0.5 * (b00 + b11)
-                            lam = half_tr + wp.sqrt(wp.max(0.01, half_tr * half_tr - det))
-                            r1 = extend * wp.sqrt(lam)
-                            rx = wp.min(wp.ceil(wp.min(extend * wp.sqrt(b00), r1)), float(width))
-                            ry = wp.min(wp.ceil(wp.min(extend * wp.sqrt(b11), r1)), float(height))
             u = fx * x * rz + cx
             v = fy * y * rz + cy
             # Bound the radius so that it fits an int32; tile ranges are clamped to the image anyway.

@@ -371,7 +371,7 @@ def benchmark_table(rows: list, title: str) -> str:
 RASTER_KNOBS = {
     "alpha_min": {"1/128": 1 / 128, "1/64": 1 / 64, "1/32": 1 / 32},
     "transmittance_min": {"1e-3": 1e-3, "1e-2": 1e-2},
-    "radius_rule": {"3sigma": "3sigma", "tight": "tight"},
+    "radius_rule": {"3sigma": "3sigma"},
     "tile_size": {"8": 8, "32": 32},
     "fast_math": {"off": False},
     "color_storage": {"float16": "float16"},

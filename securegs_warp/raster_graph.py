@@ -29,7 +29,7 @@ import torch
 import warp as wp
 
 from .lease import Lease
-from .rasterizer import OUTPUT_NAMES, RasterOptions, RenderPlan, check_finite
+from .rasterizer import OUTPUT_NAMES, SECOND_BACKWARD, RasterOptions, RenderPlan, check_finite
 from .warp_scope import warp_stream
 
 # Capacity = HEADROOM × the intersections of the first render (or of one that overflowed it) +
@@ -245,6 +245,8 @@ class _CapturedRasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_image, g_alpha, g_depth, *_):
         lease = ctx.lease
+        if lease is None:
+            raise RuntimeError(SECOND_BACKWARD)
         ctx.lease = None
         try:
             grads, means2d_grad = lease.entry.backward((g_image, g_alpha, g_depth))

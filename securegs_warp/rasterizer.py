@@ -24,6 +24,15 @@ DEPTH_MODES = (None, "accumulated", "expected")
 # Which tiles a Gaussian is binned to: every tile of its radius rectangle (gsplat 1.5), or only those
 # its ellipse at the alpha threshold reaches (same image, fewer intersections to sort and blend).
 TILE_OVERLAPS = ("ellipse", "rectangle")
+# Each render's buffers are released by its backward (a training loop would otherwise hold them until
+# the autograd graph is freed), so a render has one backward.
+SECOND_BACKWARD = ("rasterize: this render's backward has already run and released its buffers (one backward a "
+                   "render; retain_graph=True does not keep them): render again for another backward")
+# The most entries of the sort's key and value buffers: Warp's array dimensions are int32.
+MAX_SORTED = 2**31 - 1
+# The least transmittance_min: the blending backward rebuilds each earlier transmittance from the
+# last one, which keeps too few significant bits below float32's smallest normal number (2⁻¹²⁶).
+TRANSMITTANCE_FLOOR = 2.0 ** -126
 BACKWARD_WALKS = ("block", "warp")
 GATHERS = ("fields", "packed")
 
@@ -133,8 +142,11 @@ class RasterOptions:
             raise ValueError(f"need 0 < near_plane < far_plane, got {self.near_plane}, {self.far_plane}")
         if not 0.0 < self.alpha_min <= self.alpha_max < 1.0:
             raise ValueError(f"need 0 < alpha_min <= alpha_max < 1, got {self.alpha_min}, {self.alpha_max}")
-        if not 0.0 <= self.transmittance_min < 1.0:
-            raise ValueError(f"need 0 <= transmittance_min < 1, got {self.transmittance_min}")
+        if not TRANSMITTANCE_FLOOR <= self.transmittance_min < 1.0:
+            raise ValueError(f"need {TRANSMITTANCE_FLOOR:.4g} <= transmittance_min < 1 (float32's smallest normal "
+                             f"number; below it the transmittance becomes subnormal and the backward, which "
+                             f"rebuilds every earlier transmittance from the last, loses its precision), "
+                             f"got {self.transmittance_min}")
         if self.eps2d < 0.0:
             raise ValueError(f"eps2d must be >= 0, got {self.eps2d}")
         for name in ("forward_block", "backward_block"):
@@ -460,6 +472,10 @@ class RenderPlan:
 
     def allocate_intersections(self, capacity: int) -> None:
         """Key and value buffers for ``capacity`` intersections (radix_sort_pairs needs twice that)."""
+        if 2 * capacity > MAX_SORTED:
+            raise ValueError(f"{capacity} tile intersections exceed what the sort can hold ({MAX_SORTED // 2}: "
+                             "its buffers are twice the count and Warp's arrays have int32 dimensions); render "
+                             "fewer Gaussians or a smaller image at once")
         self.capacity = capacity
         tdev = self.out["image"].device
         self.keys = _wp(torch.empty(max(2 * capacity, 2), device=tdev, dtype=torch.int64), wp.int64)
@@ -539,8 +555,6 @@ class _Rasterize(torch.autograd.Function):
             host = torch.cat(parts).tolist() if parts else []
             n_isect = int(host[0]) if plan.n else 0
             check_finite((names, host[1:] if plan.n else host))
-            if n_isect >= 2**31 - 1:
-                raise ValueError(f"{n_isect} tile intersections exceed the sort's int32 index range")
             plan.allocate_intersections(n_isect)
             plan.sort_intersections(n_isect, padded=False)
             plan.blend()
@@ -552,6 +566,8 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_image, g_alpha, g_depth, *_):
         plan = ctx.plan
+        if plan is None:
+            raise RuntimeError(SECOND_BACKWARD)
         # The incoming gradients are read in place (an unused output's may be None: zeros).
         cotangents = [_wp(torch.zeros_like(plan.out[k]) if g is None else g.float().contiguous(), wp.float32)
                       for k, g in zip(("image", "alpha", "depth"), (g_image, g_alpha, g_depth))]

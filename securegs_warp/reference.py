@@ -63,11 +63,6 @@ def project(means, quats, scales, opacities, viewmat, K, width, height, near_pla
             extend = torch.sqrt(2.0 * torch.log((opac / alpha_min).clamp_min(1.0))).clamp_max(3.33)
             rx = torch.ceil(extend * torch.sqrt(b00))
             ry = torch.ceil(extend * torch.sqrt(b11))
-            if radius_rule == "tight":
-                half = 0.5 * (b00 + b11)
-                r1 = extend * torch.sqrt(half + torch.sqrt((half * half - det).clamp_min(0.01)))
-                rx = torch.ceil(torch.minimum(extend * torch.sqrt(b00), r1)).clamp_max(width)
-                ry = torch.ceil(torch.minimum(extend * torch.sqrt(b11), r1)).clamp_max(height)
         rx, ry = rx.clamp_max(1e9), ry.clamp_max(1e9)
         visible &= ~((rx <= radius_clip) & (ry <= radius_clip))
         u, v = means2d[:, 0], means2d[:, 1]

@@ -10,9 +10,9 @@ from securegs_warp import RasterOptions, UnknownOptionError, benchmark
 
 
 def test_parse_options_types_each_field():
-    options = benchmark.parse_options("tile_size=8, fast_math=true,alpha_min=0.01,radius_rule=tight,"
+    options = benchmark.parse_options("tile_size=8, fast_math=true,alpha_min=0.01,radius_rule=3sigma,"
                                       "render_depth=expected,antialiased=False")
-    assert options == RasterOptions(tile_size=8, fast_math=True, alpha_min=0.01, radius_rule="tight",
+    assert options == RasterOptions(tile_size=8, fast_math=True, alpha_min=0.01, radius_rule="3sigma",
                                     render_depth="expected", antialiased=False)
     assert isinstance(options.alpha_min, float) and options.tile_size == 8
     assert benchmark.parse_options("") == RasterOptions()

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from securegs_warp import RasterOptions, UnknownOptionError, rasterize, reference
+from securegs_warp.rasterizer import TRANSMITTANCE_FLOOR
 from securegs_warp.raster_cases import (
     DIFF_INPUTS, aniso_scales, assert_matches_reference, hard_scene, intrinsics, layered_scene, random_scene,
     render_both, render_with_grads,
@@ -38,9 +39,8 @@ def test_tile_sizes(tile_size, gather):
     assert_matches_reference(random_scene(4, n=50, tile_size=tile_size, gather=gather))
 
 
-@pytest.mark.parametrize("radius_rule", ["3sigma", "tight"])
-def test_radius_rules(radius_rule):
-    assert_matches_reference(random_scene(5, n=50, radius_rule=radius_rule))
+def test_three_sigma_radius():
+    assert_matches_reference(random_scene(5, n=50, radius_rule="3sigma"))
 
 
 def test_antialiased():
@@ -108,6 +108,29 @@ def test_scales_from_1e_minus7_to_1e3():
     assert_matches_reference(hard_scene(_grid_means(n, depth=4.0), scales=scales))
 
 
+def test_antialiased_screen_covering_gaussian():
+    # Deviations of ~1e9 px and more: det(Σ) overflows float32, and the antialiasing ratio must not
+    # turn into inf / inf (a NaN opacity that culls the Gaussian and NaN gradients).
+    means = torch.tensor([[0.0, 0.0, 3.0], [0.3, 0.2, 4.0], [5.0, 0.0, 3.0]])
+    for scale in (1e6, 1e9, 1e12):
+        scales = torch.tensor([[scale, scale * 0.7, scale * 1.3], [0.2, 0.1, 0.3], [0.2, 0.1, 0.3]])
+        ours, _ = assert_matches_reference(hard_scene(means, scales=scales, opacities=torch.tensor([0.3, 0.7, 0.7]),
+                                                      antialiased=True))
+        assert all(torch.isfinite(ours[f"grad_{name}"]).all() for name in ("means", "quats", "scales"))
+
+
+@pytest.mark.parametrize("radius_rule", ["opacity_aware", "3sigma"])
+def test_large_gaussians_centred_off_screen(radius_rule):
+    # Centres left of the image whose footprints reach far into it: a radius capped at the image's
+    # size would stop their tiles short of where they still blend (or cull them).
+    means = torch.tensor([[-1.4, 0.0, 1.0], [-1.9, 0.3, 1.0], [0.0, -2.0, 1.2]])
+    ours, ref = assert_matches_reference(hard_scene(means, quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(3, 1),
+                                                    scales=torch.tensor([1.0, 0.6, 0.8]).repeat(3, 1),
+                                                    opacities=torch.full((3,), 0.9),
+                                                    radius_rule=radius_rule))
+    assert float(ref["alpha"][12, 20]) > 0.1
+
+
 def test_anisotropy_1e6():
     n = 30
     g = torch.Generator().manual_seed(1)
@@ -164,16 +187,14 @@ def test_opacities_exactly_zero_and_one():
     assert (ours["grad_opacities"][0::3] == 0).all()  # culled
 
 
-@pytest.mark.parametrize("radius_rule", ["opacity_aware", "tight"])
-def test_opacity_exactly_at_alpha_min(radius_rule):
+def test_opacity_exactly_at_alpha_min():
     # The opacity-aware radius takes sqrt(2 ln(o / alpha_min)), 0 at o == alpha_min, where sqrt's
     # adjoint is 0/0 unless guarded: the opacity gradients must stay finite (the rounded radius
     # carries none).
     n = 30
     alpha_min = torch.tensor(1.0 / 255.0, dtype=torch.float32)
     opac = torch.stack([alpha_min, torch.nextafter(alpha_min, torch.tensor(1.0)), torch.tensor(0.6)]).repeat(10)
-    assert_matches_reference(hard_scene(_grid_means(n), opacities=opac, scales=aniso_scales(n, 0.3),
-                                        radius_rule=radius_rule))
+    assert_matches_reference(hard_scene(_grid_means(n), opacities=opac, scales=aniso_scales(n, 0.3)))
 
 
 @GATHERS
@@ -184,6 +205,19 @@ def test_hundreds_of_layers_on_one_pixel(gather):
     scene.kwargs["gather"] = gather
     ours, ref = assert_matches_reference(scene)
     assert float(ref["alpha"].max()) > 0.999  # the stack really does saturate
+
+
+def test_opaque_stack_down_to_the_transmittance_floor():
+    # Forty opaque layers on one pixel with the least transmittance_min allowed: the transmittance
+    # falls to float32's smallest normal numbers, from which the backward rebuilds the earlier ones.
+    z = torch.linspace(2.0, 4.0, 40)
+    means = torch.stack([torch.zeros_like(z), torch.zeros_like(z), z], 1)
+    means[:, :2] += torch.randn(40, 2, generator=torch.Generator().manual_seed(3)) * 0.05
+    assert_matches_reference(hard_scene(means, opacities=torch.ones(40), scales=aniso_scales(40, 0.5), width=8,
+                                        height=8, transmittance_min=TRANSMITTANCE_FLOOR))
+    # Below it the transmittance would turn subnormal and the gradients lose their precision.
+    with pytest.raises(ValueError, match="transmittance_min.*subnormal"):
+        RasterOptions(transmittance_min=0.0)
 
 
 def test_coordinates_of_magnitude_1e4():
@@ -294,10 +328,10 @@ def _render(s, options=None, **overrides):
 
 def test_options_object_and_keywords_give_the_same_render():
     s = random_scene(18, n=40)
-    by_object = _render(s, RasterOptions(tile_size=8, radius_rule="tight"))
-    by_keywords = _render(s, tile_size=8, radius_rule="tight")
-    mixed = _render(s, RasterOptions(tile_size=32, radius_rule="tight"), tile_size=8)  # keywords win
-    default = _render(s, tile_size=16, radius_rule="tight")
+    by_object = _render(s, RasterOptions(tile_size=8, radius_rule="3sigma"))
+    by_keywords = _render(s, tile_size=8, radius_rule="3sigma")
+    mixed = _render(s, RasterOptions(tile_size=32, radius_rule="3sigma"), tile_size=8)  # keywords win
+    default = _render(s, tile_size=16, radius_rule="3sigma")
     for other in (by_keywords, mixed):
         assert torch.equal(by_object[0], other[0]) and torch.equal(by_object[1], other[1])
         assert by_object[2]["n_intersections"] == other[2]["n_intersections"]

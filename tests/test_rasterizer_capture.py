@@ -156,3 +156,24 @@ def test_pool_keeps_at_most_max_shapes():
     assert len(raster_graph._POOL) == raster_graph.MAX_SHAPES
     # The most recent shapes stay.
     assert [key[1] for key in raster_graph._POOL] == list(range(22, 22 + raster_graph.MAX_SHAPES))
+
+
+@pytest.mark.parametrize("capture", [False, True])
+def test_a_second_backward_of_one_render_is_refused(capture):
+    # The first backward releases the render's buffers (or its pooled entry): a second one, which
+    # retain_graph=True would otherwise allow, must say so instead of failing on a released object.
+    scene = random_scene(3, n=30)
+    leaves = {name: getattr(scene, name).detach().clone().to(TEST_DEVICE).requires_grad_() for name in DIFF_INPUTS}
+    image, _, _ = rasterize(**leaves, viewmat=scene.viewmat.to(TEST_DEVICE), K=scene.K.to(TEST_DEVICE),
+                            width=scene.width, height=scene.height, capture=capture, **scene.kwargs)
+    image.sum().backward(retain_graph=True)
+    with pytest.raises(RuntimeError, match="backward has already run"):
+        image.sum().backward()
+
+
+@pytest.mark.parametrize("capture", [False, True])
+def test_more_intersections_than_the_sort_holds_are_refused(capture, monkeypatch):
+    # The real bound (2³⁰ intersections) needs gigabytes to reach; a lowered one takes the same path.
+    monkeypatch.setattr("securegs_warp.rasterizer.MAX_SORTED", 64)
+    with pytest.raises(ValueError, match="tile intersections exceed what the sort can hold"):
+        render(random_scene(4, n=60), capture=capture, backward=False)
