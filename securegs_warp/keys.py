@@ -1,8 +1,11 @@
 """Private key files: the hidden heads (MLP weights) and their metadata, bound to one public container.
 
 A key is a ``.safetensors`` file: named tensors (``offset_mlp.0.weight`` ...) plus string metadata
-``format=securegs-key``, ``version=1``, ``container=<fingerprint>``, ``metadata=<json>`` and
-``sha256=<tensor hash>``. safetensors rather than ``torch.save`` because a pickle runs code when it is
+``format=securegs-key``, ``version=2``, ``container=<fingerprint>``, ``metadata=<json>`` and
+``sha256=<checksum>`` over the tensors, the fingerprint and the metadata together (``reveal`` and
+``verify`` read the message, the bit seed and the cameras from the metadata: editing them must be
+detected like editing a weight). Version 1 keys, whose checksum covered the tensors alone, are still
+read, since a key is the only way back to its secret. safetensors rather than ``torch.save`` because a pickle runs code when it is
 loaded, and key files get passed around: reading a key must never execute anything. Only
 safetensors and JSON are ever parsed here.
 
@@ -35,11 +38,15 @@ from safetensors.torch import save as _st_save
 from securegs_warp.io.atomic import atomic_write
 
 FORMAT = "securegs-key"
-VERSION = "1"
+VERSION = "2"
+TENSORS_ONLY_VERSION = "1"  # its checksum covers the tensors alone (module docstring)
 SEALED_MAGIC = b"SECUREGS-SEALED-KEY v1\n"
 _SEALED_PREFIX = b"SECUREGS-SEALED-KEY "  # any version: lets us say "newer version" instead of "not a key"
 SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**15, 8, 1  # ~32 MiB, ~0.1 s per try: cheap once, costly per guess
-_MAX_SCRYPT_N = 2**20  # a forged header must not make us allocate gigabytes before the tag check
+# A forged header must not make us allocate gigabytes (scrypt takes 128·r·n bytes) or spend minutes
+# (p runs) before the tag check: generous bounds around what ``seal`` writes.
+_MAX_SCRYPT_BYTES = 2**28
+_MAX_SCRYPT_P = 4
 
 
 class KeyFileError(ValueError):
@@ -60,6 +67,12 @@ def _tensor_hash(tensors: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
+def _checksum(tensors: dict[str, torch.Tensor], fingerprint: str, metadata_json: str) -> str:
+    """SHA-256 hex binding a key's tensors, its container fingerprint and its metadata (as stored)."""
+    bound = {"tensors": _tensor_hash(tensors), "container": fingerprint, "metadata": metadata_json}
+    return hashlib.sha256(json.dumps(bound, sort_keys=True).encode()).hexdigest()
+
+
 def container_fingerprint(public_state: dict[str, torch.Tensor]) -> str:
     """Identify a public container by its public MLP weights: ``{name: tensor}`` -> 64 hex chars.
 
@@ -76,12 +89,13 @@ def _plain_bytes(tensors: dict[str, torch.Tensor], metadata: dict, fingerprint: 
         raise TypeError("tensors must map str names to torch.Tensor")
     # Own CPU copies: safetensors refuses non-contiguous tensors and tensors sharing storage.
     tensors = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
+    metadata_json = json.dumps(metadata, sort_keys=True, allow_nan=False)  # strict JSON, any reader
     header = {
         "format": FORMAT,
         "version": VERSION,
         "container": fingerprint,
-        "metadata": json.dumps(metadata, sort_keys=True, allow_nan=False),  # strict JSON, any reader
-        "sha256": _tensor_hash(tensors),
+        "metadata": metadata_json,
+        "sha256": _checksum(tensors, fingerprint, metadata_json),
     }
     return _st_save(tensors, metadata=header)
 
@@ -155,8 +169,8 @@ def unseal(path: Path, blob: bytes, passphrase: str | None, what: str = "key") -
         salt, nonce = base64.b64decode(h["salt"], validate=True), base64.b64decode(h["nonce"], validate=True)
         n, r, p = int(h["n"]), int(h["r"]), int(h["p"])
         ok = (h["cipher"] == "AES-256-GCM" and h["kdf"] == "scrypt" and len(nonce) == 12
-              and len(salt) >= 8 and 2 <= n <= _MAX_SCRYPT_N and n & (n - 1) == 0
-              and 1 <= r <= 32 and 1 <= p <= 16)
+              and len(salt) >= 8 and n >= 2 and n & (n - 1) == 0 and r >= 1
+              and 128 * r * n <= _MAX_SCRYPT_BYTES and 1 <= p <= _MAX_SCRYPT_P)
     except (ValueError, KeyError, TypeError):
         ok = False
     if not ok:
@@ -185,17 +199,23 @@ def _parse_plain(path: Path, data: bytes) -> tuple[dict[str, str], dict[str, tor
         meta = json.loads(data[8: 8 + n]).get("__metadata__") or {}
     except (ValueError, AttributeError):
         raise KeyFileError(f"{path}: key file is damaged (its header is not valid JSON)") from None
+    if not isinstance(meta, dict):
+        raise KeyFileError(f"{path}: not a securegs key file (its safetensors metadata is not a mapping)")
     if meta.get("format") != FORMAT:
         raise KeyFileError(f"{path}: not a securegs key file (a safetensors file without key metadata)")
-    if meta.get("version") != VERSION:
+    if meta.get("version") not in (TENSORS_ONLY_VERSION, VERSION):
         raise KeyFileError(f"{path}: key file version {meta.get('version')!r} is unknown; "
-                           f"this securegs-warp reads version {VERSION}")
+                           f"this securegs-warp reads versions {TENSORS_ONLY_VERSION} and {VERSION}")
     try:
         tensors = _st_load(data)  # parses raw bytes only; never unpickles
     except Exception as e:  # SafetensorError is not exported under a stable name
         raise KeyFileError(f"{path}: key file is truncated or damaged ({e})") from None
-    if meta.get("sha256") != _tensor_hash(tensors):
-        raise KeyFileError(f"{path}: the key file was modified (its tensors do not match its checksum)")
+    if meta.get("version") == TENSORS_ONLY_VERSION:
+        expected = _tensor_hash(tensors)
+    else:
+        expected = _checksum(tensors, meta.get("container"), meta.get("metadata"))
+    if meta.get("sha256") != expected:
+        raise KeyFileError(f"{path}: the key file was modified (its contents do not match its checksum)")
     return meta, tensors
 
 
@@ -226,6 +246,8 @@ def load_key(path: str | os.PathLike, passphrase: str | None = None,
                            f"container is {expected_fingerprint[:12]}…)")
     try:
         metadata = json.loads(meta.get("metadata", "{}"))
-    except ValueError:
+    except (ValueError, TypeError):
         raise KeyFileError(f"{path}: key file is damaged (its metadata is not valid JSON)") from None
+    if not isinstance(metadata, dict):
+        raise KeyFileError(f"{path}: key file is damaged (its metadata is not a JSON object)")
     return tensors, metadata

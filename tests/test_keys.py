@@ -86,7 +86,7 @@ def test_plain_key_is_an_ordinary_safetensors_file(plain):
     with open(plain, "rb") as f:
         n = struct.unpack("<Q", f.read(8))[0]
         header = json.loads(f.read(n))["__metadata__"]
-    assert header["format"] == "securegs-key" and header["version"] == "1"
+    assert header["format"] == "securegs-key" and header["version"] == "2"
     assert header["container"] == FP and json.loads(header["metadata"]) == META
 
 
@@ -129,6 +129,71 @@ def test_huge_scrypt_cost_in_a_forged_header_is_refused(sealed):
     sealed.write_bytes(SEALED_MAGIC + json.dumps(header).encode() + b"\n" + blob[end:])
     with pytest.raises(KeyFileError, match="header is damaged"):
         load_key(sealed, passphrase=PASS)
+
+
+def test_scrypt_memory_and_runs_in_a_forged_header_are_bounded(sealed):
+    # n and r each within their own range, but 128·r·n = 4 GiB together, or 16 runs of it.
+    blob = sealed.read_bytes()
+    end = _header_end(blob)
+    for edit in ({"n": 2**20, "r": 32}, {"p": 16}):
+        header = {**json.loads(blob[len(SEALED_MAGIC):end]), **edit}
+        sealed.write_bytes(SEALED_MAGIC + json.dumps(header).encode() + b"\n" + blob[end:])
+        with pytest.raises(KeyFileError, match="header is damaged"):
+            load_key(sealed, passphrase=PASS)
+
+
+def _edit_plain_header(path, edit):
+    """Rewrite a plain key's safetensors header through ``edit(header)``, tensors untouched."""
+    blob = path.read_bytes()
+    n = struct.unpack("<Q", blob[:8])[0]
+    header = json.loads(blob[8:8 + n])
+    edit(header)
+    text = json.dumps(header).encode()
+    text += b" " * (-len(text) % 8)  # safetensors keeps the data 8-byte aligned
+    path.write_bytes(struct.pack("<Q", len(text)) + text + blob[8 + n:])
+
+
+@pytest.mark.parametrize("field", ["metadata", "container"])
+def test_edited_plain_metadata_is_detected(plain, field):
+    # reveal and verify read the message, bit seed and cameras from the metadata, and the container
+    # fingerprint says which release the key opens: the checksum covers them as it covers a weight.
+    def edit(header):
+        meta = header["__metadata__"]
+        meta[field] = json.dumps({**META, "bit_length": 47}) if field == "metadata" else "0" * 64
+    _edit_plain_header(plain, edit)
+    load_file(plain)  # still valid safetensors
+    with pytest.raises(KeyFileError, match="the key file was modified"):
+        load_key(plain)
+
+
+def test_version_1_key_still_loads(plain):
+    # Keys written before the checksum covered the metadata: their checksum is the tensors' alone.
+    from securegs_warp.keys import _tensor_hash
+
+    def edit(header):
+        header["__metadata__"].update(version="1", sha256=_tensor_hash(load_file(plain)))
+    _edit_plain_header(plain, edit)
+    tensors, meta = load_key(plain)
+    assert meta == META
+    _assert_same(tensors, _heads())
+
+
+@pytest.mark.parametrize("metadata", ['["not", "a", "mapping"]', '"text"'])
+def test_key_metadata_that_is_not_an_object_is_refused(tmp_path, metadata):
+    import securegs_warp.keys as keys
+
+    p = tmp_path / "odd.key"
+    save_key(p, _heads(), META, FP)
+    def edit(header):
+        meta = header["__metadata__"]
+        meta["metadata"] = metadata
+        meta["sha256"] = keys._checksum(load_file(p), FP, metadata)
+    _edit_plain_header(p, edit)
+    with pytest.raises(KeyFileError, match="metadata is not a JSON object"):
+        load_key(p)
+    _edit_plain_header(p, lambda header: header.update(__metadata__="oops"))
+    with pytest.raises(KeyFileError, match="not a securegs key file"):
+        load_key(p)
 
 
 def test_flipped_plain_tensor_byte_is_detected(plain):
@@ -194,10 +259,10 @@ def test_missing_file(tmp_path):
 
 
 def test_unknown_versions(tmp_path, plain):
-    meta = {"format": "securegs-key", "version": "2", "container": FP, "metadata": "{}", "sha256": ""}
-    p = tmp_path / "v2.key"
+    meta = {"format": "securegs-key", "version": "3", "container": FP, "metadata": "{}", "sha256": ""}
+    p = tmp_path / "v3.key"
     save_file({"w": torch.ones(2)}, p, metadata=meta)
-    with pytest.raises(KeyFileError, match="version '2' is unknown"):
+    with pytest.raises(KeyFileError, match="version '3' is unknown"):
         load_key(p)
     p.write_bytes(b"SECUREGS-SEALED-KEY v2\n{}\n" + os.urandom(64))
     with pytest.raises(KeyFileError, match="unknown version"):
