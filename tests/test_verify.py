@@ -255,3 +255,15 @@ def test_kept_projection_is_the_fresh_one_and_the_formula():
     sign = (decoder.target[bit] * 2 - 1).float()
     short = (0.7 - sign * 10.0 * (feat * w).sum(dim=1)).clamp_min(0)
     assert torch.equal(fresh, feat + (sign * short / (10.0 * (w * w).sum(dim=1)))[:, None] * w)
+
+
+def test_an_object_key_answers_for_a_release_of_other_head_options(runs, capsys, tmp_path):
+    # An object key's hidden decoder has the shapes of its own release's heads; a Scaffold-GS model
+    # trained with the feature bank has others. verify reads the bit decoder alone: an answer.
+    assert main(["hide", "--out", str(tmp_path / "o"), "--payload", "object+bits:48", "--iterations", "20",
+                 *TINY]) == 0
+    assert main(["train", "--out", str(tmp_path / "bank"), "--iterations", "20", "--feat-bank", *TINY]) == 0
+    key = tmp_path / "o" / "key.safetensors"
+    assert verify_json(capsys, tmp_path / "o" / "public", key)["present"] is True
+    other = verify_json(capsys, tmp_path / "bank" / "model", key)
+    assert other["present"] is False and other["p_value"] > 1e-6

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from ..secure.container import open_container
+from ..secure.container import open_bit_decoder
 from ..secure.verification import DEFAULT_ALPHA, min_p_value, verify_message
 from . import common
 from .common import CommandError
@@ -13,10 +13,10 @@ from .secure import passphrase_from
 
 def cmd_verify(args) -> int:
     device = common.resolve_device(args.device)
-    model, _ = open_container(args.release, args.key, passphrase_from(args), device=device, check_fingerprint=False)
-    if model.private.bits is None:
+    anchors, decoder = open_bit_decoder(args.release, args.key, passphrase_from(args), device=device)
+    if decoder is None:
         raise CommandError(f"{args.key}: this key hides no bits, so there is no message to verify")
-    result = verify_message(model.private.bits, model.anchors.feat, model.anchors.xyz, args.alpha)
+    result = verify_message(decoder, anchors.feat, anchors.xyz, args.alpha)
     if args.json:
         print(json.dumps(result.to_json()))
         return 0

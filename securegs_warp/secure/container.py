@@ -21,9 +21,10 @@ from ..config import from_dict
 from ..data import Camera
 from ..io import load_scaffold, save_scaffold
 from ..keys import KeyFileError, container_fingerprint, load_key, save_key
-from ..model import ScaffoldHeads
+from ..model import AnchorModel, ScaffoldHeads
 from ..rasterizer import RasterOptions
 from .heads import PrivateHeads
+from .keyed_bits import KeyedBitDecoder
 from .model import SecureModel
 
 PUBLIC_DIR = "public"
@@ -90,15 +91,45 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
     wrong passphrase or a modified key raise ``KeyFileError`` (never a garbage render).
 
     check_fingerprint=False opens a release whose public MLPs no longer match the key's fingerprint.
-    Only two tools pass it: ``securegs attack``, because an attack that changes the MLP weights (a
-    float16 round trip, fine-tuning) is meant to be scored with the key it was made against; and
-    ``securegs verify``, which asks whether a release carries the key's message, so a release the key
-    was not made for must get an answer ("absent", with its p-value), not a refusal. Any other user
-    of a key is refused a release it was not made for. The key's own integrity is still checked."""
+    Only ``securegs attack`` passes it: an attack that changes the MLP weights (a float16 round trip,
+    fine-tuning) is meant to be scored with the key it was made against. ``securegs verify`` asks
+    whether any release carries the key's message and reads the bit decoder alone
+    (``open_bit_decoder``). Any other user of a key is refused a release it was not made for. The
+    key's own integrity is still checked."""
     anchors, heads = load_scaffold(public, device=device)
     if key is None:
         return SecureModel(anchors, heads, []), {}
     expected = release_fingerprint(heads) if check_fingerprint else None
+    tensors, metadata = _load_readable_key(key, passphrase, expected)
+    try:
+        private = PrivateHeads(heads, **metadata["heads"]).to(device)
+        private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise KeyFileError(f"{key}: the key's heads do not fit this release ({e})") from None
+    return SecureModel(anchors, heads, [private]), metadata
+
+
+def open_bit_decoder(public: str | Path, key: str | Path, passphrase: str | None = None,
+                     device="cpu") -> tuple[AnchorModel, KeyedBitDecoder | None]:
+    """A release's anchors and a key's bit decoder alone (None where the key hides no bits), for
+    ``securegs verify``: the decoder is derived from the key's metadata for the release's feature
+    width, so any Scaffold-GS release gets an answer, whatever its head options (its MLPs need not
+    fit the key's hidden decoder). The key's integrity is checked; its fingerprint is not."""
+    anchors, _ = load_scaffold(public, device=device)
+    _, metadata = _load_readable_key(key, passphrase, None)
+    described = metadata.get("heads", {})
+    if "message" not in described:
+        return anchors, None
+    try:
+        decoder = KeyedBitDecoder(anchors.feat.shape[1], described["message"], described["bit_seed"],
+                                  described["bit_cell"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise KeyFileError(f"{key}: the key's bit decoder cannot be derived from its metadata ({e})") from None
+    return anchors, decoder.to(device)
+
+
+def _load_readable_key(key: str | Path, passphrase: str | None, expected: str | None) -> tuple[dict, dict]:
+    """``load_key``, refusing keys of earlier versions whose heads this one cannot rebuild."""
     tensors, metadata = load_key(key, passphrase, expected_fingerprint=expected)
     if "bits" in metadata.get("heads", {}):
         raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose bit head was trained rather than derived "
@@ -110,12 +141,7 @@ def open_container(public: str | Path, key: str | Path | None = None, passphrase
     if described.get("frame") == "box" and _PREFIX + "serving_radius" not in tensors:
         raise KeyFileError(f"{key}: a key of an earlier securegs-warp, whose serving anchors were counted rather than "
                            "bounded by a radius; hide the payload again to get a key this version reads")
-    try:
-        private = PrivateHeads(heads, **metadata["heads"]).to(device)
-        private.load_state_dict({name[len(_PREFIX):]: t.to(device) for name, t in tensors.items()})
-    except (KeyError, TypeError, ValueError, RuntimeError) as e:
-        raise KeyFileError(f"{key}: the key's heads do not fit this release ({e})") from None
-    return SecureModel(anchors, heads, [private]), metadata
+    return tensors, metadata
 
 
 @dataclasses.dataclass
