@@ -115,8 +115,15 @@ class TrainConfig:
     def __post_init__(self):
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
+        check_seed(self.seed)
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
+
+
+def check_seed(seed: int, name: str = "seed") -> None:
+    """Refuse a seed that torch's generators cannot take (a signed 64-bit integer) by its name."""
+    if not -2**63 <= seed < 2**63:
+        raise ValueError(f"{name} must fit a signed 64-bit integer, got {seed}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -477,6 +484,7 @@ class SceneSpec:
     downscale: int = 1
 
     def __post_init__(self):
+        check_seed(self.seed, "scene seed")
         for name in ("width", "height", "n_train", "n_test", "downscale"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

@@ -291,10 +291,27 @@ def test_attack_cli_json(container, tmp_path, capsys):
     assert main(args + ["--force"]) == 0
 
 
+def test_a_failing_attack_leaves_the_earlier_release(container, tmp_path, capsys):
+    # --force replaces the earlier attacked release only once a new one exists: an attack that fails
+    # (every anchor pruned) or leaves values no release can hold (feature noise past float32) keeps it.
+    base = ["attack", str(container / "public"), "--key", str(container / "key.safetensors"), "--out",
+            str(tmp_path / "a"), "--device", "cpu"]
+    assert main(base + ["--attack", "prune-random:0.1"]) == 0
+    before = (tmp_path / "a" / "point_cloud.ply").read_bytes()
+    for spec, message in (("prune-random:0.9999", "every anchor"), ("noise-feat:1e40", "non-finite values")):
+        capsys.readouterr()
+        assert main(base + ["--attack", spec, "--force"]) == 2
+        assert message in capsys.readouterr().err
+        assert (tmp_path / "a" / "point_cloud.ply").read_bytes() == before
+
+
 def test_attack_cli_refuses_bad_specs(container, capsys):
     code = main(["attack", str(container / "public"), "--key", str(container / "key.safetensors"),
                  "--attack", "prune:0.2"])
     assert code == 2 and "valid: prune-random:F" in capsys.readouterr().err
+    code = main(["attack", str(container / "public"), "--key", str(container / "key.safetensors"),
+                 "--attack", "half", "--seed", str(2**70)])
+    assert code == 2 and "--seed must fit a signed 64-bit integer" in capsys.readouterr().err
 
 
 def test_sweep_rows_and_scores(container, scene):

@@ -98,6 +98,28 @@ def test_force_replaces_only_what_a_run_wrote(tmp_path, capsys):
     assert (out / "notes.txt").read_text() == "mine"  # not ours: kept
 
 
+def test_force_keeps_the_earlier_run_when_the_new_inputs_fail(tmp_path, capsys):
+    # The earlier run (its key included) is cleared only once the new scene has loaded.
+    out = tmp_path / "run"
+    args = ["hide", "--out", str(out), "--iterations", "2", "--quiet", *TINY]
+    assert main(args) == 0
+    key = (out / "key.safetensors").read_bytes()
+    for wrong, named in ((["--hide", str(tmp_path / "missing.obj")], "missing.obj"),
+                         (["--scene", str(tmp_path / "no_scene")], "no_scene")):
+        assert main(args + ["--force", *wrong]) == 2
+        assert named in _error(capsys)
+        assert (out / "key.safetensors").read_bytes() == key and (out / "public").is_dir()
+
+
+def test_resume_without_a_checkpoint_says_so(tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["train", "--out", str(out), "--iterations", "2", "--quiet", *TINY]
+    assert main(args) == 0
+    (out / "checkpoint.pt").unlink()  # as a run stopped before its first checkpoint has none
+    assert main(args + ["--resume"]) == 2
+    assert "no checkpoint to resume from" in _error(capsys)
+
+
 def test_demo_on_an_existing_run_needs_force(tmp_path, capsys, monkeypatch):
     import securegs_warp.cli.secure as secure_cli
 
@@ -125,6 +147,11 @@ def test_reveal_out_refuses_used_folders(tmp_path, capsys):
     assert main(reveal) == 2
     assert "--force" in _error(capsys)
     assert main(reveal + ["--force"]) == 0
+    # what a reveal writes is the secret: its owner's only
+    assert stat.S_IMODE((out / "bits.json").stat().st_mode) == 0o600
+    # without a key reveal needs --scene: refused before the earlier reveal is replaced
+    assert main(["reveal", str(run / "public"), "--out", str(out), "--force"]) == 2
+    assert "needs --scene" in _error(capsys) and (out / "bits.json").is_file()
     (out / "thesis.tex").write_text("mine")
     assert main(reveal + ["--force"]) == 2
     assert "other files" in _error(capsys)
@@ -161,7 +188,8 @@ def test_disk_full_is_one_line_and_loses_nothing(tmp_path, monkeypatch, capsys):
 
 # (extra arguments, what the one-line error says), by where the check lives
 CONFIG_FIELDS = [(["--iterations", "0"], "iterations must be >= 1"), (["--iterations", "-5"], "iterations must be >= 1"),
-                 (["--iterations", "ten"], "not a valid int"), (["--tile-size", "12"], "tile_size must be 8, 16 or 32")]
+                 (["--iterations", "ten"], "not a valid int"), (["--tile-size", "12"], "tile_size must be 8, 16 or 32"),
+                 (["--seed", str(2**70)], "seed must fit a signed 64-bit integer")]
 SCENE_FIELDS = [(["--width", "0"], "width must be >= 1"), (["--height", "-1"], "height must be >= 1"),
                 (["--train-views", "0"], "n_train must be >= 1"), (["--test-views", "0"], "n_test"),
                 (["--downscale", "0"], "downscale must be >= 1")]

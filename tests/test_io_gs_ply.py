@@ -73,3 +73,10 @@ def test_shape_errors_and_unreadable_files(tmp_path):
     plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")]).write(str(tmp_path / "m.ply"))
     with pytest.raises(PlyFormatError, match="'scale_2' is missing"):
         read_3dgs_ply(tmp_path / "m.ply")
+    # Headers that plyfile refuses with a bare ValueError: the error names the file.
+    header = b"ply\nformat binary_little_endian 1.0\nelement vertex %s\n%send_header\n"
+    for name, text in (("twice.ply", header % (b"2", b"property float x\nproperty float x\n")),
+                       ("negative.ply", header % (b"-2", b"property float x\n"))):
+        (tmp_path / name).write_bytes(text + bytes(8))
+        with pytest.raises(PlyFormatError, match=f"{name}: not a readable PLY file"):
+            read_3dgs_ply(tmp_path / name)

@@ -3,6 +3,7 @@
 import importlib
 import io
 import re
+import struct
 import uuid
 import warnings
 import zipfile
@@ -438,6 +439,33 @@ def test_damaged_torchscript_archive_is_refused(tmp_path, damage, problem):
         load_weights(path)
 
 
+def _module_doubling_pickle(depth: int) -> bytes:
+    """A pickle of ``depth`` nested modules, each holding its one child twice through the memo: a
+    few hundred bytes that a walk visiting every reference would visit 2^depth times."""
+    def text(s):
+        return b"\x8c" + bytes([len(s)]) + s.encode()  # SHORT_BINUNICODE
+
+    out = bytearray(b"\x80\x02c__torch__\nM\nq\x00")  # PROTO 2, GLOBAL __torch__.M, BINPUT 0
+    def module(level, slot):
+        if slot:
+            out.extend(b"h\x00")  # BINGET 0: the class
+        out.extend(b")\x81}")  # EMPTY_TUPLE, NEWOBJ, EMPTY_DICT
+        if level:
+            out.extend(b"(" + text("a"))  # MARK, key
+            module(level - 1, True)
+            memo = struct.pack("<I", level)
+            out.extend(b"r" + memo + text("b") + b"j" + memo + b"u")  # the child put, fetched again, SETITEMS
+        out.extend(b"b")  # BUILD
+    module(depth, False)
+    return bytes(out) + b"."
+
+
+def test_a_module_graph_of_shared_children_is_refused_quickly(tmp_path):
+    path = archive_with_data_pkl(tmp_path / "cov_mlp.pt", lambda _: _module_doubling_pickle(60))
+    with pytest.raises(MlpFileError, match="more than 4096 modules to walk"):
+        load_weights(path)
+
+
 def test_files_that_are_not_weights_are_refused(tmp_path):
     random_bytes = tmp_path / "random.pt"
     random_bytes.write_bytes(np.random.default_rng(0).bytes(4096))
@@ -456,6 +484,14 @@ def test_files_that_are_not_weights_are_refused(tmp_path):
     truncated.write_bytes(whole[: len(whole) - 200])
     with pytest.raises(MlpFileError, match="truncated.pt: "):
         load_weights(truncated)
+
+    # A torch.save file cut in half: torch's zip reader raises OSError(EINVAL), with no file name.
+    buffer = io.BytesIO()
+    torch.save({"weight": torch.ones(100, 100)}, buffer)
+    half = tmp_path / "half.pt"
+    half.write_bytes(buffer.getvalue()[: len(buffer.getvalue()) // 2])
+    with pytest.raises(MlpFileError, match="half.pt: not a readable torch weights file"):
+        load_weights(half)
 
 
 # ----------------------------------------------------------------------------------------------

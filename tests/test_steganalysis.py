@@ -245,6 +245,16 @@ def test_audit_command_prints_one_json_object(tmp_path, capsys):
     assert {"score", "suspicious_box", "anchors", "attribute_distances"} <= set(report)
     assert set(report["attribute_distances"]) == {"features", "offsets", "scales", "opacities"}
     assert max(report["attribute_distances"].values()) < 1e-6  # the release against itself
+    # Four steps leave no hidden Gaussian opaque enough to mark a surface: the leak's keys are there,
+    # null, with the reason; a reference of another k and feature width is not comparable, not an error.
+    assert report["coverage"] is None and report["density_ratio"] is None and "opaque" in report["leakage_note"]
+    other = tmp_path / "other"
+    assert main(["train", "--out", str(other), "--iterations", "2", "--quiet", "--set", "train.heads.n_offsets=5",
+                 "--set", "train.heads.feat_dim=16", *TINY]) == 0
+    capsys.readouterr()
+    assert main(["audit", str(out / "public"), "--reference", str(other / "model"), "--json"]) == 0
+    distances = json.loads(capsys.readouterr().out)["attribute_distances"]
+    assert distances["features"] is None and distances["offsets"] is None and distances["scales"] is not None
 
 
 def test_leakage_counts_anchors_on_the_hidden_surface():

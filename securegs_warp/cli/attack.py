@@ -3,13 +3,12 @@ still gets out of it (hidden views, bits) and what the cover keeps."""
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import torch
 
 from ..attacks import ATTACK_SYNTAX, FINETUNE_NEEDS_SCENE, AttackContext, parse_attacks
-from ..config import SceneSpec, TrainConfig, apply_overrides
+from ..config import SceneSpec, TrainConfig, apply_overrides, check_seed
 from ..io import save_scaffold
 from ..io.scaffold import MLP_FILES, POINT_CLOUD_FILE
 from ..robustness import attacked_copy, reference_hidden, score_release
@@ -32,8 +31,9 @@ def scene_from(args):
 
 
 def prepare_release_folder(out: RunFolder, force: bool) -> None:
-    """Refuse an --out that holds anything but an earlier attacked release; replace that one only
-    with --force."""
+    """Refuse an --out that holds anything but an earlier attacked release, and that one without
+    --force. Nothing is removed here: ``save_scaffold`` replaces the folder whole once the attacked
+    release exists, so a failing attack leaves the earlier one."""
     path = out.path
     if path.exists() and not path.is_dir():
         raise CommandError(f"--out {path} is a file, not a folder")
@@ -44,12 +44,15 @@ def prepare_release_folder(out: RunFolder, force: bool) -> None:
         raise CommandError(f"--out {path} holds other files ({', '.join(others)}); choose a new or empty folder")
     if not force:
         raise CommandError(f"--out {path} holds an earlier release; add --force to replace it")
-    shutil.rmtree(path)
 
 
 @torch.no_grad()
 def cmd_attack(args) -> int:
     attacks = parse_attacks(args.attack)
+    try:
+        check_seed(args.seed, "--seed")
+    except ValueError as e:
+        raise CommandError(str(e)) from None
     device = common.resolve_device(args.device)
     common.quiet_warp()
     scene = scene_from(args)
@@ -68,6 +71,11 @@ def cmd_attack(args) -> int:
                         torch.Generator().manual_seed(args.seed), scene, TrainConfig())
     with torch.enable_grad():  # purify's contributions and finetune take gradients
         attacked, reports = attacked_copy(model, attacks, ctx)
+    broken = [name for part in (attacked.anchors, attacked.heads) for name, t in part.state_dict().items()
+              if t.is_floating_point() and not torch.isfinite(t).all()]
+    if broken:
+        raise CommandError(f"the attacks ({', '.join(args.attack)}) left non-finite values in {', '.join(broken)}: "
+                           "no release can hold them, and nothing was written")
     save_scaffold(out.path, attacked.anchors, attacked.heads)
     heads_changed = any(a.changes_heads for a in attacks)
     # An attack on the MLP weights breaks the key's binding to this release; it is scored anyway,

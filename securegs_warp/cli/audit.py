@@ -20,10 +20,19 @@ def cmd_audit(args) -> int:
     release = steganalysis.release_arrays(model)
     ref = steganalysis.release_arrays(reference) if reference is not None else None
     report = steganalysis.audit(release, ref)
-    if model.renders_hidden:
-        points = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
-        if len(points):
+    if args.key is not None:
+        report.update(coverage=None, density_ratio=None)  # present and null where not measured
+        points = (steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
+                  if model.renders_hidden else [])
+        if not model.renders_hidden:
+            report["leakage_note"] = "the key hides no object or scene (bits only): no hidden surface to measure"
+        elif not len(points):
+            report["leakage_note"] = (f"no hidden Gaussian is opaque enough (above {steganalysis.SURFACE_OPACITY}) to "
+                                      "mark the hidden surface")
+        else:
             report.update(steganalysis.leakage(release["xyz"], points, None if ref is None else ref["xyz"]))
+            if ref is None:
+                report["leakage_note"] = "density_ratio compares with a plain model of the scene: give --reference"
     if args.json:
         args.quiet = True  # stdout is the one JSON object: no "done in" line after it
         print(json.dumps(report))
@@ -35,10 +44,13 @@ def cmd_audit(args) -> int:
         print("suspicious box: [" + ", ".join(f"{v:.3f}" for v in lo) + "] to [" + ", ".join(f"{v:.3f}" for v in hi)
               + "]" + "".join(f", {k} {v:.2f}" for k, v in report.get("region", {}).items()))
     for name, value in report.get("attribute_distances", {}).items():
-        print(f"sliced Wasserstein, {name}: {value:.4f}")
+        print(f"sliced Wasserstein, {name}: " + ("not comparable (the releases' shapes differ)" if value is None
+                                                  else f"{value:.4f}"))
     for name in ("coverage", "reference_coverage", "density_ratio"):
         if report.get(name) is not None:
             print(f"{name}: {report[name]:.3f}")
+    if "leakage_note" in report:
+        print(f"note: {report['leakage_note']}")
     return 0
 
 

@@ -177,7 +177,8 @@ def check_run_arguments(args) -> None:
 
 def prepare_run(run: RunFolder, config: RunConfig, args) -> bool:
     """Decide whether to resume (True) or start afresh (False); refuse to mix runs or to touch a
-    folder that is not one of ours."""
+    folder that is not one of ours. Nothing is removed here: ``start_training`` clears an earlier
+    run (``--force``) once the new run's scene and trainer exist, so that a wrong input leaves it."""
     if run.path.exists() and not run.path.is_dir():
         raise CommandError(f"--out {run.path} is a file, not a folder")
     if args.resume and run.checkpoint.is_file():
@@ -188,12 +189,14 @@ def prepare_run(run: RunFolder, config: RunConfig, args) -> bool:
                                f"({_lookup(saved, field)!r}, now {_lookup(config, field)!r}); resume with the same "
                                "options")
         return True
+    if args.resume and run.config.is_file() and not args.force:
+        raise CommandError(f"{run.path} holds a run but no checkpoint to resume from (it stopped before its first "
+                           "checkpoint, or it finished and its checkpoint was removed); add --force to start over")
     if run.config.is_file() and not args.force:
         raise CommandError(f"{run.path} already holds a run; add --resume to continue it or --force to start over")
     if not run.config.is_file() and run.path.is_dir() and any(run.path.iterdir()):
         raise CommandError(f"--out {run.path} is a folder with other files in it (not a securegs run); "
                            "choose a new or empty folder")
-    run.clear()
     return False
 
 
@@ -205,7 +208,10 @@ def _lookup(config, field: str):
 
 def start_training(trainer, run: RunFolder, config: RunConfig, resume: bool, args, finish,
                    passphrase: str | None = None) -> int:
-    """Resume or start, record the config, and train; ``passphrase`` seals every checkpoint."""
+    """Resume or start (clearing an earlier run's files, which ``prepare_run`` allowed), record the
+    config, and train; ``passphrase`` seals every checkpoint."""
+    if not resume:
+        run.clear()
     if resume:
         trainer.load_checkpoint(run.checkpoint, passphrase)
         print(f"resuming {run.path} at step {trainer.step_count}")

@@ -354,17 +354,30 @@ def cmd_reveal(args) -> int:
     common.quiet_warp()
     model, meta = open_container(args.release, args.key, passphrase_from(args), device=device)
     out = RunFolder(args.out)
-    prepare_reveal_folder(out, args.force)
+    # Every input is read before an earlier reveal in --out is replaced: a wrong one leaves it.
     if model.private is None:
         if getattr(args, "scene.source") is None:
             raise CommandError("without --key, reveal renders the cover scene only and needs --scene for its cameras "
                                "(the release itself stores none)")
         cams = args_scene_cameras(args)
-        for cam in cams:
-            save_png(out.renders / png_name(cam.name, "public_"), model.render(cam)["image"].clamp(0, 1))
-        print(f"no key: rendered the cover scene only ({len(cams)} views in {out.renders})")
-        return 0
-    views = KeyViews.from_metadata(meta, device)
+    else:
+        views = KeyViews.from_metadata(meta, device)
+    # What it writes (the message, the hidden renders and Gaussians) is the secret: its owner's only.
+    with private_files():
+        prepare_reveal_folder(out, args.force)
+        if model.private is None:
+            return _render_cover(model, cams, out)
+        return _reveal(model, views, out)
+
+
+def _render_cover(model, cams: list[Camera], out: RunFolder) -> int:
+    for cam in cams:
+        save_png(out.renders / png_name(cam.name, "public_"), model.render(cam)["image"].clamp(0, 1))
+    print(f"no key: rendered the cover scene only ({len(cams)} views in {out.renders})")
+    return 0
+
+
+def _reveal(model, views: KeyViews, out: RunFolder) -> int:
     for cam in views.cameras:
         save_png(out.renders / png_name(cam.name, "public_"),
                  model.render(cam, views.raster, background=views.background)["image"].clamp(0, 1))

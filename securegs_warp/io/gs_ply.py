@@ -68,8 +68,9 @@ def read_vertex_ply(path: str | os.PathLike) -> plyfile.PlyElement:
     """Read the ``vertex`` element of a PLY file, raising :class:`PlyFormatError` if there is none."""
     try:
         ply = plyfile.PlyData.read(os.fspath(path))
-    except (plyfile.PlyParseError, UnicodeDecodeError) as e:
-        # plyfile decodes the header as ASCII: a binary file that is no PLY fails with UnicodeDecodeError.
+    except (plyfile.PlyParseError, ValueError) as e:
+        # plyfile decodes the header as ASCII: a binary file that is no PLY fails with UnicodeDecodeError
+        # (a ValueError); a header naming one property twice or a negative count, with a bare ValueError.
         raise PlyFormatError(path, f"not a readable PLY file ({e})") from e
     if "vertex" not in ply:
         raise PlyFormatError(path, "has no 'vertex' element")

@@ -419,7 +419,7 @@ def _torch_load_tensors(path: Path, device: torch.device | str):
             f"refused by torch.load(weights_only=True): it is not plain tensors, and unpickling it could "
             f"run code ({e})",
         ) from e
-    except (RuntimeError, EOFError, zipfile.BadZipFile) as e:
+    except (RuntimeError, EOFError, OSError, zipfile.BadZipFile) as e:  # a truncated zip: OSError(EINVAL)
         raise MlpFileError(path, f"not a readable torch weights file ({e})") from e
 
 

@@ -67,6 +67,9 @@ _ORDERED_DICT = ("collections", "OrderedDict")
 _MODULE_CLASS_PACKAGE = "__torch__"
 MAX_PICKLE_BYTES = 64 << 20
 MAX_MODULE_DEPTH = 64
+# Submodules walked in all: the pickle's memo lets a module refer to one child twice, so a file of a
+# few kilobytes could otherwise be walked 2^depth times.
+MAX_MODULES = 4096
 MAX_TENSOR_DIMS = 64
 
 
@@ -169,7 +172,7 @@ def read_torchscript_state_dict(path: str | os.PathLike) -> dict[str, torch.Tens
             if not _is_module(root):
                 raise TorchScriptError(f"data.pkl holds {_describe(root)}, not a module")
             state: dict[str, torch.Tensor] = {}
-            _collect(root, "", state, storages, depth=0)
+            _collect(root, "", state, storages, depth=0, walked=[0])
             return state
     except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError) as e:
         raise TorchScriptError(f"unreadable zip archive ({e})") from e
@@ -381,9 +384,14 @@ def _is_tensor(value: Any) -> bool:
 
 
 def _collect(module: Call, prefix: str, out: dict[str, torch.Tensor], storages: "_StorageReader",
-             depth: int) -> None:
+             depth: int, walked: list[int]) -> None:
+    """Every tensor of ``module`` and its submodules into ``out`` by dotted name; ``walked`` [1]
+    counts the modules walked so far, over the whole archive."""
     if depth > MAX_MODULE_DEPTH:
         raise TorchScriptError(f"modules nest deeper than {MAX_MODULE_DEPTH} levels at '{prefix}'")
+    walked[0] += 1
+    if walked[0] > MAX_MODULES:
+        raise TorchScriptError(f"more than {MAX_MODULES} modules to walk (at '{prefix}'): an MLP file has a few")
     for key, value in module.state.items():
         if not isinstance(key, str):
             continue
@@ -391,7 +399,7 @@ def _collect(module: Call, prefix: str, out: dict[str, torch.Tensor], storages: 
         if _is_tensor(value):
             out[name] = _build_tensor(name, value, storages)
         elif _is_module(value):
-            _collect(value, f"{name}.", out, storages, depth + 1)
+            _collect(value, f"{name}.", out, storages, depth + 1, walked)
         # Anything else (training flags, hooks, ints, None for an absent bias) is not a tensor.
 
 

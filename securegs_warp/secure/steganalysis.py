@@ -136,8 +136,11 @@ def sliced_wasserstein(a: np.ndarray, b: np.ndarray, seed: int = 0) -> float:
 
 def attribute_distances(release: dict, reference: dict) -> dict:
     """Sliced Wasserstein distance per attribute between two releases' anchors, each a dict of
-    arrays [N, ...] (``features``, ``offsets``, ``scales``, ``opacities``: see ``release_arrays``)."""
-    return {name: sliced_wasserstein(release[name], reference[name]) for name in release if name in reference}
+    arrays [N, ...] (``features``, ``offsets``, ``scales``, ``opacities``: see ``release_arrays``);
+    None for an attribute whose per-anchor shapes differ (models of another k or feature width)."""
+    return {name: sliced_wasserstein(release[name], reference[name])
+                  if release[name].shape[1:] == reference[name].shape[1:] else None
+            for name in release if name in reference}
 
 
 def audit(release: dict, reference: dict | None = None) -> dict:
@@ -185,7 +188,12 @@ def detection_auc(container_scores, plain_scores) -> float:
     return float(((c[:, None] > p[None, :]).sum() + 0.5 * (c[:, None] == p[None, :]).sum()) / (len(c) * len(p)))
 
 
-def hidden_surface(model, cameras, samples: int = 4096, min_opacity: float = 0.5, seed: int = 0) -> np.ndarray:
+# The opacity above which a decoded hidden Gaussian marks the hidden surface.
+SURFACE_OPACITY = 0.5
+
+
+def hidden_surface(model, cameras, samples: int = 4096, min_opacity: float = SURFACE_OPACITY,
+                   seed: int = 0) -> np.ndarray:
     """Points [≤ samples, 3] on the hidden object, from a ``SecureModel`` opened with its key: the
     means of the hidden Gaussians of opacity above ``min_opacity`` decoded with each camera's view
     directions (``SecureModel.hidden_gaussians``), pooled and subsampled."""
