@@ -68,6 +68,20 @@ def test_random_bits_are_not_derived_from_the_recorded_seed(tmp_path):
     assert len(messages) == 2
 
 
+def test_a_literal_message_resumes_by_its_length_and_refuses_another(tmp_path, capsys):
+    # config.json and the checkpoint record a literal message by its length: resuming takes either
+    # the length or the same literal; another literal would silently change the secret, and is refused.
+    out = tmp_path / "run"
+    args = ["hide", "--out", str(out), "--iterations", "4", "--checkpoint-every", "2", "--quiet", *TINY]
+    assert main(args + ["--payload", "bits:0b1011"]) == 0
+    assert '"bits:4"' in (out / "config.json").read_text()
+    for payload in ("bits:4", "bits:0b1011"):
+        assert main(args + ["--payload", payload, "--resume"]) == 0, payload
+    assert main(args + ["--payload", "bits:0b0000", "--resume"]) == 2
+    assert "another message" in _error(capsys)
+    assert json.loads((out / "metrics.json").read_text())["bit_accuracy"] == 1.0
+
+
 # --- files ---------------------------------------------------------------------------------------
 
 def test_out_that_is_not_a_run_is_never_touched(tmp_path, capsys):

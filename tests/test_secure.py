@@ -693,8 +693,25 @@ def test_a_checkpoint_whose_private_heads_have_other_shapes_is_refused_by_name(h
     old.step()
     old.save_checkpoint(tmp_path / "run.pt")
     monkeypatch.undo()
+    fresh = SecureTrainer(hidden_scene, config, secure)
+    anchors = fresh.model.anchors.xyz.detach().clone()
     with pytest.raises(ValueError, match=r"run\.pt: the checkpoint's private heads have other shapes.*offset_mlp"):
-        SecureTrainer(hidden_scene, config, secure).load_checkpoint(tmp_path / "run.pt")
+        fresh.load_checkpoint(tmp_path / "run.pt")
+    # refused before anything was loaded: the trainer is as it was
+    assert fresh.step_count == 0 and torch.equal(fresh.model.anchors.xyz.detach(), anchors)
+
+
+def test_a_checkpoint_without_its_secrets_record_is_refused_in_words(hidden_scene, tmp_path):
+    config = TrainConfig(iterations=4, raster=CPU_RASTER)
+    secure = SecureConfig(payload="object+bits:8", hidden_offsets=2, hidden_width=8, hidden_anchors=40)
+    trainer = SecureTrainer(hidden_scene, config, secure)
+    trainer.step()
+    state = trainer.checkpoint_state()
+    del state["bit_seeds"]  # as an earlier version wrote it
+    fresh = SecureTrainer(hidden_scene, config, secure)
+    with pytest.raises(ValueError, match="another number of secrets.*earlier securegs-warp"):
+        fresh.restore(state, tmp_path / "run.pt")
+    assert fresh.step_count == 0
 
 
 @pytest.mark.parametrize("growth_at", ["hidden", "public"])

@@ -25,7 +25,7 @@ from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
 from ..secure.container import PUBLIC_DIR, KeyFile, KeyViews, default_key_path, open_container, save_container
-from ..secure.payload import SECRET_SEPARATOR, describe_secrets, parse_secrets
+from ..secure.payload import SECRET_SEPARATOR, parse_secrets, recorded_payload
 from ..secure.robust import ROBUST_SYNTAX
 from ..secure.trainer import secret_suffix
 from ..secure.security import exposure
@@ -261,11 +261,10 @@ def cmd_hide(args) -> int:
 
 
 def recorded(config: RunConfig) -> RunConfig:
-    """What config.json records: the config with a literal bit message replaced by its length
-    (``bits:0b1011`` -> ``bits:4``). The message itself is kept only in the key and the
-    checkpoints, which a sealed run seals; resuming takes it from the checkpoint."""
-    payload = describe_secrets(parse_secrets(config.secure.payload))
-    return dataclasses.replace(config, secure=dataclasses.replace(config.secure, payload=payload))
+    """What config.json records: the config with its payload as ``recorded_payload`` gives it
+    (resuming takes the message from the checkpoint)."""
+    return dataclasses.replace(config, secure=dataclasses.replace(config.secure,
+                                                                  payload=recorded_payload(config.secure.payload)))
 
 
 @contextlib.contextmanager

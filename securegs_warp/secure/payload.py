@@ -95,6 +95,13 @@ def describe_secrets(specs: list[PayloadSpec]) -> str:
     return SECRET_SEPARATOR.join(spec.describe() for spec in specs)
 
 
+def recorded_payload(payload: str) -> str:
+    """A payload as a run records it (config.json, checkpoints): a literal message by its length
+    (``bits:0b1011`` -> ``bits:4``). The message itself is kept only in the key and the checkpoints'
+    state, which a sealed run seals."""
+    return describe_secrets(parse_secrets(payload))
+
+
 def _parse_bits(arg: str) -> tuple[int, str | None]:
     """(length, literal message or None) of a ``bits`` argument (see ``PayloadSpec.parse``)."""
     literal = arg[2:] if arg.startswith("0b") else arg if arg.startswith("0") and len(arg) > 1 else None

@@ -28,7 +28,7 @@ from .crop import Crop, box_crop
 from .heads import PrivateHeads
 from .keyed_bits import new_seed
 from .model import SecureModel
-from .payload import Payload, build_payload, message_string, parse_secrets
+from .payload import Payload, build_payload, message_string, parse_secrets, recorded_payload
 from .robust import parse_robust, perturb, public_opacity
 
 # The hidden render must beat the best flat image by this much to count as learnt (a collapsed
@@ -158,7 +158,11 @@ class SecureTrainer(ScaffoldTrainer):
         return groups
 
     def config_sections(self) -> dict:
-        return {**super().config_sections(), "secure": self.secure}
+        """As config.json records them: a literal message by its length (``bits:0b1011`` ->
+        ``bits:4``), so that a run resumes with either; ``restore`` compares a literal given on
+        resume with the checkpoint's message."""
+        return {**super().config_sections(),
+                "secure": dataclasses.replace(self.secure, payload=recorded_payload(self.secure.payload))}
 
     # -- the finishing phase --------------------------------------------------------------------
 
@@ -472,25 +476,13 @@ class SecureTrainer(ScaffoldTrainer):
 
     def restore(self, state: dict, path) -> None:
         # Before anything is loaded, so that a refused resume leaves this trainer as it was.
+        self._check_config(state.get("config"), path)
         self._check_phase(state, path)
+        self._check_private(state, path)
         super().restore(state, path)
-        if not isinstance(state.get("private"), list) or len(state["private"]) != len(self.payloads):
-            raise ValueError(f"{path}: the checkpoint holds another number of secrets (or was written by an earlier "
-                             "securegs-warp); start the run again")
         self.bit_seeds = list(state["bit_seeds"])
         for private, p, saved, message, seed in zip(self.model.secrets, self.payloads, state["private"],
                                                     state["messages"], self.bit_seeds):
-            if set(saved) != set(private.state_dict()):
-                raise ValueError(f"{path}: the checkpoint's private heads hold other tensors than this version's "
-                                 f"({', '.join(sorted(set(saved) ^ set(private.state_dict())))}; written by an "
-                                 "earlier securegs-warp); start the run again")
-            differing = next((name for name, t in private.state_dict().items() if saved[name].shape != t.shape), None)
-            if differing is not None:
-                raise ValueError(f"{path}: the checkpoint's private heads have other shapes than this run's "
-                                 f"({differing}: {tuple(saved[differing].shape)} against "
-                                 f"{tuple(private.state_dict()[differing].shape)}); it was written with other "
-                                 "private-head options (or defaults: --hidden-encoding was 0 before it defaulted to "
-                                 "6): resume with those")
             private.load_state_dict(saved)
             if p.bits is not None:
                 p.bits = message.to(self.device)
@@ -509,6 +501,31 @@ class SecureTrainer(ScaffoldTrainer):
         average = state.get("finish_average")
         self._finish_average = None if average is None else \
             {"count": average["count"], "weights": [w.to(self.device) for w in average["weights"]]}
+
+    def _check_private(self, state: dict, path) -> None:
+        """Refuse a checkpoint whose secrets this run cannot take: another number of them, or private
+        heads of other tensors or shapes (an earlier version, other private-head options)."""
+        if any(not isinstance(state.get(name), list) or len(state[name]) != len(self.payloads)
+               for name in ("private", "bit_seeds", "messages")):
+            raise ValueError(f"{path}: the checkpoint holds another number of secrets (or was written by an earlier "
+                             "securegs-warp); start the run again")
+        for i, (spec, message) in enumerate(zip(parse_secrets(self.secure.payload), state["messages"])):
+            if spec.bit_string is not None and message_string(message) != spec.bit_string:
+                raise ValueError(f"{path}: secret {i + 1} of the run hides another message than the one given now; "
+                                 f"resume with bits:{spec.bits} (the checkpoint keeps its message) or the same one")
+        for private, saved in zip(self.model.secrets, state["private"]):
+            mine = private.state_dict()
+            if set(saved) != set(mine):
+                raise ValueError(f"{path}: the checkpoint's private heads hold other tensors than this version's "
+                                 f"({', '.join(sorted(set(saved) ^ set(mine)))}; written by an "
+                                 "earlier securegs-warp); start the run again")
+            differing = next((name for name, t in mine.items() if saved[name].shape != t.shape), None)
+            if differing is not None:
+                raise ValueError(f"{path}: the checkpoint's private heads have other shapes than this run's "
+                                 f"({differing}: {tuple(saved[differing].shape)} against "
+                                 f"{tuple(mine[differing].shape)}); it was written with other "
+                                 "private-head options (or defaults: --hidden-encoding was 0 before it defaulted to "
+                                 "6): resume with those")
 
 
 def view_psnr(image: torch.Tensor, target: torch.Tensor, share: float) -> float:
