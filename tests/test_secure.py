@@ -701,6 +701,19 @@ def test_a_checkpoint_whose_private_heads_have_other_shapes_is_refused_by_name(h
     assert fresh.step_count == 0 and torch.equal(fresh.model.anchors.xyz.detach(), anchors)
 
 
+def test_a_checkpoint_that_recorded_a_literal_message_still_resumes(hidden_scene, tmp_path):
+    # Checkpoints of earlier versions hold the literal in their config; they are compared as recorded.
+    config = TrainConfig(iterations=4, raster=CPU_RASTER)
+    trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:0b1011"))
+    trainer.step()
+    state = trainer.checkpoint_state()
+    assert state["config"]["secure"]["payload"] == "bits:4"
+    state["config"]["secure"]["payload"] = "bits:0b1011"
+    fresh = SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:0b1011"))
+    fresh.restore(state, tmp_path / "run.pt")
+    assert fresh.step_count == 1
+
+
 def test_a_checkpoint_without_its_secrets_record_is_refused_in_words(hidden_scene, tmp_path):
     config = TrainConfig(iterations=4, raster=CPU_RASTER)
     secure = SecureConfig(payload="object+bits:8", hidden_offsets=2, hidden_width=8, hidden_anchors=40)

@@ -502,6 +502,17 @@ class SecureTrainer(ScaffoldTrainer):
         self._finish_average = None if average is None else \
             {"count": average["count"], "weights": [w.to(self.device) for w in average["weights"]]}
 
+    def _check_config(self, saved: dict | None, path) -> None:
+        # Checkpoints written before ``config_sections`` recorded a literal message by its length hold
+        # the literal: compared as recorded, they resume as before.
+        secure = saved.get("secure") if isinstance(saved, dict) else None
+        if isinstance(secure, dict) and isinstance(secure.get("payload"), str):
+            try:
+                saved = {**saved, "secure": {**secure, "payload": recorded_payload(secure["payload"])}}
+            except ValueError:
+                pass  # not a payload this version reads: the comparison names the field
+        super()._check_config(saved, path)
+
     def _check_private(self, state: dict, path) -> None:
         """Refuse a checkpoint whose secrets this run cannot take: another number of them, or private
         heads of other tensors or shapes (an earlier version, other private-head options)."""
