@@ -22,17 +22,7 @@ def cmd_audit(args) -> int:
     report = steganalysis.audit(release, ref)
     if args.key is not None:
         report.update(coverage=None, density_ratio=None)  # present and null where not measured
-        points = (steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
-                  if model.renders_hidden else [])
-        if not model.renders_hidden:
-            report["leakage_note"] = "the key hides no object or scene (bits only): no hidden surface to measure"
-        elif not len(points):
-            report["leakage_note"] = (f"no hidden Gaussian is opaque enough (above {steganalysis.SURFACE_OPACITY}) to "
-                                      "mark the hidden surface")
-        else:
-            report.update(steganalysis.leakage(release["xyz"], points, None if ref is None else ref["xyz"]))
-            if ref is None:
-                report["leakage_note"] = "density_ratio compares with a plain model of the scene: give --reference"
+        report.update(_leakage(model, meta, release, ref))
     if args.json:
         args.quiet = True  # stdout is the one JSON object: no "done in" line after it
         print(json.dumps(report))
@@ -52,6 +42,21 @@ def cmd_audit(args) -> int:
     if "leakage_note" in report:
         print(f"note: {report['leakage_note']}")
     return 0
+
+
+def _leakage(model, meta: dict, release: dict, ref: dict | None) -> dict:
+    """What the key's hidden surface finds in the anchor cloud (``steganalysis.leakage``), or a
+    ``leakage_note`` saying why it cannot be measured."""
+    if not model.renders_hidden:
+        return {"leakage_note": "the key hides no object or scene (bits only): no hidden surface to measure"}
+    points = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
+    if not len(points):
+        return {"leakage_note": f"no hidden Gaussian is opaque enough (above {steganalysis.SURFACE_OPACITY}) to "
+                                "mark the hidden surface"}
+    found = steganalysis.leakage(release["xyz"], points, None if ref is None else ref["xyz"])
+    if ref is None:
+        found["leakage_note"] = "density_ratio compares with a plain model of the scene: give --reference"
+    return found
 
 
 def add_parsers(sub) -> None:

@@ -210,11 +210,11 @@ def start_training(trainer, run: RunFolder, config: RunConfig, resume: bool, arg
                    passphrase: str | None = None) -> int:
     """Resume or start (clearing an earlier run's files, which ``prepare_run`` allowed), record the
     config, and train; ``passphrase`` seals every checkpoint."""
-    if not resume:
-        run.clear()
     if resume:
         trainer.load_checkpoint(run.checkpoint, passphrase)
         print(f"resuming {run.path} at step {trainer.step_count}")
+    else:
+        run.clear()
     run.write_json(run.config, to_dict(config))
     return train_loop(trainer, run, args, finish, passphrase)
 
