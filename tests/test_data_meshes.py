@@ -110,6 +110,35 @@ def test_load_ply_keeps_vertex_colours(tmp_path):
     assert load_mesh(tmp_path / "cube.ply", Material("checker")).materials[0].texture == "checker"
 
 
+TETRAHEDRON_WITH_UVS = """v 0 0 0
+v 1 0 0
+v 0 1 0
+v 0 0 1
+vt 0 0
+vt 1 0
+vt 0 1
+usemtl Material
+f 1/1 2/2 3/3
+f 1/1 2/2 4/3
+f 1/1 3/2 4/3
+f 2/1 3/2 4/3
+"""
+
+
+def test_texture_coordinates_without_an_image(tmp_path):
+    # What Blender exports by default: UVs and a material with a diffuse colour but no image. trimesh
+    # calls it textured; it is coloured by Kd. Without the MTL file (missing, or never written) the file
+    # holds no colour: the default noise material, not trimesh's grey placeholder.
+    (tmp_path / "kd.mtl").write_text("newmtl Material\nKd 0.8 0.1 0.1\n")
+    (tmp_path / "kd.obj").write_text("mtllib kd.mtl\n" + TETRAHEDRON_WITH_UVS)
+    mesh = load_mesh(tmp_path / "kd.obj")
+    assert mesh.materials[0].texture == "vertex"
+    np.testing.assert_allclose(mesh.colors, np.tile([0.8, 0.1, 0.1], (len(mesh.vertices), 1)), atol=1 / 255)
+    for text in ("mtllib missing.mtl\n", ""):
+        (tmp_path / "bare.obj").write_text(text + TETRAHEDRON_WITH_UVS)
+        assert load_mesh(tmp_path / "bare.obj").materials[0].texture == "noise"
+
+
 def test_load_errors(tmp_path):
     with pytest.raises(DataError, match="absent.obj: mesh file not found"):
         load_mesh(tmp_path / "absent.obj")

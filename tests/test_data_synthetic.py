@@ -174,6 +174,11 @@ def test_user_mesh_and_placement(tmp_path):
                   {"hidden_size": 1e-4}):
         with pytest.raises(DataError, match="covers no pixel of the .* training views"):
             make_synthetic_scene(hidden=str(tmp_path / "tetra.obj"), **where, **SMALL)
+    # Composited into the scene, under the floor or inside the crate: it projects into the views
+    # but nothing of it shows, and the hidden views equal the cover's.
+    for where in ((0.0, 0.0, -3.0), (0.0, 0.0, 0.05)):
+        with pytest.raises(DataError, match="covers no pixel of the .* training views"):
+            make_synthetic_scene(hidden="mug", level="scene", hidden_position=where, hidden_size=0.5, **SMALL)
 
 
 def test_bad_arguments():

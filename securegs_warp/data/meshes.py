@@ -315,6 +315,30 @@ def check_up_axis(up: str) -> None:
         raise DataError(f"a mesh's up axis must be one of {', '.join(UP_AXES)}, not {up!r}")
 
 
+def _file_colors(loaded) -> np.ndarray | None:
+    """[V, 3] colours in [0, 1] from a loaded trimesh's own visuals, or None where the file holds
+    none. trimesh calls any mesh with texture coordinates "textured", with or without an image: a
+    material without an image (an OBJ's ``Kd`` alone, a glTF colour factor) colours every vertex with
+    its main colour; the 2×2 placeholder image trimesh makes for a missing or absent MTL file is no
+    colour of the file's."""
+    visual = loaded.visual
+    if visual.kind in ("vertex", "face"):
+        return np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
+    if visual.kind != "texture":
+        return None
+    material = visual.material
+    image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+    if image is not None and image.size[0] * image.size[1] <= 4 and len(set(image.getdata())) == 1:
+        return None
+    if image is not None:
+        try:
+            return np.asarray(visual.to_color().vertex_colors, dtype=np.float32)[:, :3] / 255.0
+        except (TypeError, ValueError, IndexError):
+            pass  # trimesh cannot sample this texture: the material's main colour stands in
+    main = np.asarray(material.main_color, dtype=np.float32)[:3] / 255.0
+    return np.tile(main, (len(loaded.vertices), 1))
+
+
 def load_mesh(path, material: Material | None = None, up: str = "z") -> TriMesh:
     """Read a user's mesh file (OBJ, PLY, OFF, STL or GLB, through trimesh), normalised (see
     :func:`normalized`). Vertex or face colours, or a texture baked to vertex colours, are kept
@@ -343,10 +367,7 @@ def load_mesh(path, material: Material | None = None, up: str = "z") -> TriMesh:
     if not float(loaded.area) > 0.0:
         raise DataError(f"{path}: the mesh's triangles have no area (every one is collinear or collapsed)")
 
-    colors = None
-    if material is None and loaded.visual.kind in ("vertex", "face", "texture"):
-        visual = loaded.visual.to_color() if loaded.visual.kind == "texture" else loaded.visual
-        colors = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
+    colors = _file_colors(loaded) if material is None else None
     if colors is None:
         material = material or Material("noise", (0.35, 0.35, 0.38), (0.8, 0.78, 0.72), scale=6.0, seed=3)
     vertices = np.asarray(loaded.vertices, dtype=np.float32)

@@ -318,13 +318,6 @@ def _check_arguments(width, height, n_train, n_test, n_points, supersample, fov_
     return counts
 
 
-def _in_view(camera: Camera, points: np.ndarray) -> bool:
-    """Whether any of ``points`` [P, 3] (world) projects in front of ``camera`` and onto its image."""
-    uv, depth = camera.project(points)
-    u, v = uv[depth > 0].T
-    return bool(((u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)).any())
-
-
 def make_synthetic_scene(
     name: str = "default",
     hidden: str | TriMesh | None = None,
@@ -411,11 +404,12 @@ def make_synthetic_scene(
     for camera in train + test:
         view = hidden_renderer.render(camera, payload.lighting, payload.background, supersample)
         camera.hidden, camera.hidden_alpha = view.image()
-    # An object no training view shows (placed outside the cameras' sight, or too small to cover a
-    # pixel) leaves the hidden targets blank: refused, rather than trained on and scored as perfect.
-    # Alone ("object" level) its own alpha says it; composited, whether it projects into a view.
+    # An object no training view shows (placed outside the cameras' sight, too small to cover a
+    # pixel, or inside or behind the scene's geometry) leaves the hidden targets blank, or equal to
+    # the cover: refused, rather than trained on and scored as perfect. Alone ("object" level) its
+    # own alpha says it; composited, whether the hidden view differs from the cover's anywhere.
     shown = ([float(c.hidden_alpha.max()) >= 1.0 / 255.0 for c in train] if level == "object"
-             else [_in_view(c, payload.geometry.vertices) for c in train])
+             else [float(np.abs(c.hidden - c.image).max()) >= 1.0 / 255.0 for c in train])
     if payload.kind == "object" and not any(shown):
         low, high = payload.geometry.bounds
         raise DataError(f"the hidden object ({payload.name}, bounds {np.round(low.astype(float), 2).tolist()} to "
