@@ -229,6 +229,9 @@ def test_top_level_must_be_an_object(scene):
     with pytest.raises(DataError, match=r"transforms_train\.json: expected a JSON object with 'camera_angle_x' and "
                                         r"'frames', found an array"):
         load_blender(root)
+    (root / "transforms_train.json").write_text('{"frames": []}', encoding="utf-16")
+    with pytest.raises(DataError, match=r"transforms_train\.json: not valid JSON in UTF-8"):
+        load_blender(root)
 
 
 def test_nearly_rigid_poses_are_accepted(scene):

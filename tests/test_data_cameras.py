@@ -5,7 +5,8 @@ import pytest
 
 from securegs_warp.data import Camera, DataError, SceneData
 from securegs_warp.data.cameras import (
-    cameras_looking_at, hemisphere_positions, intrinsics_from_fov, look_at, orbit_positions, read_image, resize_image,
+    cameras_looking_at, composite, hemisphere_positions, intrinsics_from_fov, look_at, orbit_positions, read_image,
+    resize_image, resize_view,
 )
 
 
@@ -80,6 +81,31 @@ def test_read_image_formats(tmp_path):
         read_image(tmp_path / "broken.png")
     with pytest.raises(DataError, match="nothing.png: image file not found"):
         read_image(tmp_path / "nothing.png")
+
+
+def test_palette_transparency_is_read_as_alpha(tmp_path):
+    # Size-optimised PNGs keep transparency in the palette, not in an alpha channel.
+    from PIL import Image
+
+    rgba = np.zeros((4, 4, 4), dtype=np.uint8)
+    rgba[..., 0], rgba[:2, :, 3] = 255, 255
+    Image.fromarray(rgba, "RGBA").quantize(colors=4).save(tmp_path / "palette.png")
+    rgb, alpha = read_image(tmp_path / "palette.png")
+    np.testing.assert_array_equal(alpha[..., 0], rgba[..., 3] / 255.0)
+    np.testing.assert_array_equal(rgb[:2, :, 0], 1.0)
+
+
+def test_resizing_an_object_keeps_its_edge_colour():
+    # A red object on transparent black: shrunk, then composited, its edge stays red over the
+    # background, as the full-size composite shrunk does (no dark rim from the transparent black).
+    rgb = np.zeros((8, 8, 3), dtype=np.float32)
+    alpha = np.zeros((8, 8, 1), dtype=np.float32)
+    rgb[:, :5, 0], alpha[:, :5] = 1.0, 1.0
+    background = np.array([1.0, 1.0, 1.0], dtype=np.float32)
+    small_rgb, small_alpha = resize_view(rgb, alpha, (4, 4))
+    np.testing.assert_allclose(composite(small_rgb, small_alpha, background),
+                               resize_image(composite(rgb, alpha, background), (4, 4)), atol=1e-6)
+    assert resize_view(rgb, None, (4, 4))[1] is None
 
 
 def test_resize_is_an_area_average():

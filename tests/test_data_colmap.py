@@ -128,10 +128,21 @@ def test_downscale_and_hidden_views(scene):
     pinhole = view.K if view.K[0, 0] != view.K[1, 1] else data.train[1].K
     np.testing.assert_allclose(pinhole, [[3.75, 0, 2.125], [0, 3.25, 1.375], [0, 0, 1]])
     rgba = hidden[view.name].astype(np.float64) / 255
-    pooled = rgba.reshape(3, 2, 4, 2, 4).mean(axis=(1, 3))  # 2x2 box filter
-    np.testing.assert_allclose(view.hidden_alpha[..., 0], pooled[..., 3], atol=1e-5)
-    np.testing.assert_allclose(view.hidden, pooled[..., :3] * pooled[..., 3:], atol=1e-5)  # over black
+    pool = lambda a: a.reshape(3, 2, 4, 2, a.shape[-1]).mean(axis=(1, 3))  # 2x2 box filter  # noqa: E731
+    np.testing.assert_allclose(view.hidden_alpha[..., 0], pool(rgba)[..., 3], atol=1e-5)
+    # over black, composited at full size and then shrunk (the colour weighted by its alpha)
+    np.testing.assert_allclose(view.hidden, pool(rgba[..., :3] * rgba[..., 3:]), atol=1e-5)
     assert data.hidden_kind == "object" and data.hidden_level == "object"
+
+
+def test_masked_scene_images_are_their_colour_times_alpha(scene):
+    # As 3DGS reads a masked capture: the renders (over black) are compared with rgb·alpha.
+    root, (cameras, images, points), _, rng = scene
+    write_binary(root / "sparse" / "0", cameras, images, points)
+    rgba = write_images(root / "images", images, rng, channels=4)
+    view = load_colmap(root).train[0]
+    pixels = rgba[view.name].astype(np.float64) / 255
+    np.testing.assert_allclose(view.image, pixels[..., :3] * pixels[..., 3:], atol=1e-6)
 
 
 def test_presized_image_folder_is_used(scene):
@@ -199,7 +210,9 @@ def test_truncated_binary(scene, file):
     data = (sparse / file).read_bytes()
     for cut in (3, len(data) // 2, len(data) - 1):
         (sparse / file).write_bytes(data[:cut])
-        expected = rf"{file}: truncated file: .* at byte \d+, but the file has only {cut} bytes"
+        # (points3D.bin's point count is checked against the bytes left before its records are read)
+        expected = (rf"{file}: truncated (file: .* at byte \d+, but the file has only {cut} bytes"
+                    rf"|or damaged file: \d+ points need at least \d+ bytes)")
         with pytest.raises(DataError, match=expected):
             load_colmap(root)
 
@@ -220,6 +233,27 @@ def test_trailing_bytes_and_bad_text(scene):
     fields[7] = "oops"  # the reprojection error
     (sparse / "points3D.txt").write_text("\n".join([lines[0], " ".join(fields), *lines[2:]]))
     with pytest.raises(DataError, match=r"points3D.txt:2: bad point line"):
+        load_colmap(root)
+    fields[7], fields[4] = "0.5", "300"  # a colour channel past 255
+    (sparse / "points3D.txt").write_text("\n".join([lines[0], " ".join(fields), *lines[2:]]))
+    with pytest.raises(DataError, match=r"points3D.txt:2: point .* colour .* 0..255"):
+        load_colmap(root)
+    (sparse / "points3D.txt").write_text("\n".join(lines))
+    # images.txt without the keypoints line of each image would lose every other image
+    image_lines = [line for line in (sparse / "images.txt").read_text().splitlines() if line and line[0].isdigit()]
+    (sparse / "images.txt").write_text("\n".join(image_lines) + "\n")
+    with pytest.raises(DataError, match=r"images.txt:2: expected the keypoints of image"):
+        load_colmap(root)
+
+
+def test_damaged_point_count_is_refused_before_allocating(scene):
+    root, (cameras, images, points), _, _ = scene
+    sparse = root / "sparse" / "0"
+    write_binary(sparse, cameras, images, points)
+    data = bytearray((sparse / "points3D.bin").read_bytes())
+    data[:8] = struct.pack("<Q", 2**40)
+    (sparse / "points3D.bin").write_bytes(bytes(data))
+    with pytest.raises(DataError, match=r"points3D.bin: truncated or damaged file: 1099511627776 points"):
         load_colmap(root)
 
 

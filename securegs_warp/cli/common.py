@@ -96,7 +96,8 @@ SCENE_FLAGS = (
 )
 TRAIN_FLAGS = (
     ("--iterations", "train.iterations", "training steps"),
-    ("--seed", "train.seed", "random seed (scene generation, initialisation, view order, growth draws)"),
+    ("--seed", "train.seed", "random seed of the training (initialisation, view order, growth draws); the synthetic "
+                             "scene's layout has its own, --set scene.seed=N"),
     ("--tile-size", "train.raster.tile_size", "rasterizer tile: 8, 16 or 32 (default: 8 on the CPU, 16 on CUDA)"),
 )
 HEAD_FLAGS = (

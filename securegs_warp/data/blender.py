@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, SceneData, composite, read_image, resize_image, rigid_transform_problem
+from .cameras import Camera, SceneData, composite, read_image, resize_view, rigid_transform_problem
 from .errors import DataError
 
 # OpenGL camera axes (y up, z backward) to OpenCV (y down, z forward): negate y and z.
@@ -24,8 +24,8 @@ _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 def _load_json(path: Path) -> dict:
     try:
         meta = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as error:
-        raise DataError(f"{path}: not valid JSON ({error})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise DataError(f"{path}: not valid JSON in UTF-8 ({error})") from None
     if not isinstance(meta, dict):
         raise DataError(
             f"{path}: expected a JSON object with 'camera_angle_x' and 'frames', found {_json_type(meta)}"
@@ -134,7 +134,7 @@ def _read_split(root: Path, split: str, background, downscale: float) -> list[Ca
         image_path = _frame_image_path(root, file_path)
         rgb, alpha = read_image(image_path)
         size = (round(rgb.shape[1] / downscale), round(rgb.shape[0] / downscale))
-        rgb, alpha = resize_image(rgb, size), resize_image(alpha, size)
+        rgb, alpha = resize_view(rgb, alpha, size)
         width, height = size
         focal = 0.5 * width / math.tan(0.5 * angle)
         K = np.array([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]])

@@ -266,6 +266,8 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise DataError(f"{path}: image file not found")
     try:
         raw = iio.imread(path)
+        if raw.ndim == 3 and raw.shape[2] == 3 and _keyed_transparency(path):
+            raw = iio.imread(path, mode="RGBA")
     except Exception as error:  # imageio raises many types for undecodable files; report them all alike
         # imageio appends plugin install hints on further lines: the first line names the problem.
         reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
@@ -282,6 +284,15 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     return colour, pixels[..., channels - 1 :] if channels in (2, 4) else None
 
 
+def _keyed_transparency(path: Path) -> bool:
+    """Whether an image keeps its transparency outside an alpha channel (a palette's transparent
+    entries, a PNG's transparent colour: size-optimised PNGs do), which a plain read drops."""
+    from PIL import Image
+
+    with Image.open(path) as image:
+        return "transparency" in image.info
+
+
 def resize_image(pixels: np.ndarray | None, size: tuple[int, int]) -> np.ndarray | None:
     """(H, W, C) float32 image resized to size = (width, height) by box filtering (area averaging,
     the right filter to shrink photographs); None stays None."""
@@ -292,6 +303,21 @@ def resize_image(pixels: np.ndarray | None, size: tuple[int, int]) -> np.ndarray
     # PIL resizes float images one channel at a time (mode "F").
     planes = [Image.fromarray(np.ascontiguousarray(plane)) for plane in pixels.transpose(2, 0, 1)]
     return np.stack([np.asarray(plane.resize(size, Image.BOX)) for plane in planes], axis=-1)
+
+
+def resize_view(rgb: np.ndarray, alpha: np.ndarray | None,
+                size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None]:
+    """An image's colour (H, W, 3) and alpha (H, W, 1) or None resized to size = (width, height).
+    The colour is averaged weighted by alpha (premultiplied, then divided back): a transparent
+    pixel's colour, often black, must not bleed into the object's edge, which compositing over a
+    background after the resize would show as a dark rim. ``composite`` of the result equals the
+    resize of the full-size composite."""
+    if alpha is None:
+        return resize_image(rgb, size), None
+    shrunk_alpha = resize_image(alpha, size)
+    premultiplied = resize_image(rgb * alpha, size)
+    rgb = np.where(shrunk_alpha > 0, premultiplied / np.maximum(shrunk_alpha, 1e-12), 0.0).astype(np.float32)
+    return rgb, shrunk_alpha
 
 
 def composite(rgb: np.ndarray, alpha: np.ndarray, background) -> np.ndarray:

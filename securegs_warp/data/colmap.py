@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, SceneData, composite, read_image, resize_image
+from .cameras import Camera, SceneData, composite, read_image, resize_view
 from .errors import DataError
 
 # COLMAP's camera models: id -> (name, number of parameters). All are listed so that a model we
@@ -92,6 +92,14 @@ class _BinaryReader:
         self.offset = end + 1
         return text
 
+    def records(self, count: int, least: int, what: str) -> int:
+        """``count``, once the bytes left can hold that many records of at least ``least`` bytes
+        each: a damaged count must not allocate before the file runs out."""
+        if count * least > len(self.data) - self.offset:
+            raise DataError(f"{self.path}: truncated or damaged file: {count} {what} need at least "
+                            f"{count * least} bytes, but {len(self.data) - self.offset} are left")
+        return count
+
     def finish(self):
         if self.offset != len(self.data):
             raise DataError(f"{self.path}: {len(self.data) - self.offset} unexpected bytes after the last record")
@@ -133,7 +141,8 @@ def read_images_binary(path: Path) -> dict[int, ColmapImage]:
 def read_points3d_binary(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """points3D.bin -> positions (N, 3) float64 and colours (N, 3) uint8; tracks are skipped."""
     reader = _BinaryReader(path)
-    count = reader.unpack("Q", "the point count")[0]
+    # A point record is at least 43 bytes (id, x y z, r g b, error, track length).
+    count = reader.records(reader.unpack("Q", "the point count")[0], 43, "points")
     xyz, rgb = np.empty((count, 3)), np.empty((count, 3), dtype=np.uint8)
     for k in range(count):
         values = reader.unpack("Q3d3Bd", f"point record {k}")
@@ -206,7 +215,12 @@ def read_images_text(path: Path) -> dict[int, ColmapImage]:
         # The name may contain spaces: it is everything after the ninth field.
         name = line.split(maxsplit=9)[9].strip()
         images[fields[0]] = ColmapImage(fields[0], np.array(fields[1:5]), np.array(fields[5:8]), fields[8], name)
-        k += 2  # the next line lists the image's keypoints, which we do not need
+        # The next line lists the image's keypoints (x y point-id triples), which we do not need; a
+        # file without it would silently lose every other image.
+        if k + 1 < len(lines) and len(lines[k + 1][1].split()) % 3:
+            raise DataError(f"{path}:{lines[k + 1][0]}: expected the keypoints of image {name!r} (x y point3D_id "
+                            "triples, or an empty line) after its image line; images.txt has two lines per image")
+        k += 2
     return images
 
 
@@ -218,6 +232,8 @@ def read_points3d_text(path: Path) -> tuple[np.ndarray, np.ndarray]:
         if tokens:
             values = _parse(path, no, tokens, (int, float, float, float, int, int, int, float), "point line")
             _check_point(f"{path}:{no}: point {values[0]}", values[1:4])
+            if not all(0 <= c <= 255 for c in values[4:7]):
+                raise DataError(f"{path}:{no}: point {values[0]} has colour {values[4:7]}; expected R G B in 0..255")
             xyz.append(values[1:4])
             rgb.append(values[4:7])
     return np.array(xyz, dtype=np.float64).reshape(-1, 3), np.array(rgb, dtype=np.uint8).reshape(-1, 3)
@@ -310,7 +326,7 @@ def _read_view(path: Path, camera: ColmapCamera, allowed: list[tuple[int, int]],
         )
     if size is None:
         return rgb, alpha
-    return resize_image(rgb, size), resize_image(alpha, size)
+    return resize_view(rgb, alpha, size)
 
 
 def load_colmap(
@@ -327,7 +343,8 @@ def load_colmap(
     hidden_dir: optional folder of hidden-view images with the scene images' file names, at the
     camera's size or the downscaled one. They fill each Camera's hidden (and hidden_alpha). RGBA
     hidden images are an object alone (hidden_level "object"), composited over hidden_background;
-    RGB ones are whole views (hidden_level "scene").
+    RGB ones are whole views (hidden_level "scene"). An RGBA scene image is composited over black,
+    as 3DGS multiplies a masked capture by its mask, which is what the renders are compared with.
     holdout: every holdout-th image in name order (index % holdout == 0) is a test view; 0 keeps
     all for training.
     Raises DataError for a missing folder or file, an unsupported camera model, an image whose size
@@ -376,6 +393,8 @@ def load_colmap(
         else:
             allowed = [(camera.width, camera.height)]
             rgb_image, alpha = _read_view(image_dir / image.name, camera, allowed, target, "scene")
+        if alpha is not None:  # as 3DGS reads a masked capture: the colour times its alpha (over black)
+            rgb_image = composite(rgb_image, alpha, (0.0, 0.0, 0.0))
         height, width = rgb_image.shape[:2]
         K[0] *= width / camera.width
         K[1] *= height / camera.height
