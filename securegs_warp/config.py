@@ -116,6 +116,13 @@ class TrainConfig:
         if self.iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         check_seed(self.seed)
+        # exponential_lr interpolates log-linearly: a pair needs two positive rates, or two zeros (frozen).
+        for field in dataclasses.fields(self):
+            if field.name.endswith("_lr"):
+                rates = getattr(self, field.name)
+                pair = tuple(rates) if isinstance(rates, (tuple, list)) else (rates,)
+                if not (all(r > 0 for r in pair) or all(r == 0 for r in pair)):
+                    raise ValueError(f"{field.name} must be positive (or all 0: frozen), got {rates}")
         if self.model not in MODELS:
             raise ValueError(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
 

@@ -90,7 +90,7 @@ def score_release(model: SecureModel, views: KeyViews, reference: list[torch.Ten
         background = None if scene.background is None else torch.tensor(scene.background, dtype=torch.float32,
                                                                          device=device)
         pairs = [(model.render(c, views.raster, background=background)["image"].clamp(0, 1),
-                  torch.as_tensor(c.image, device=device)) for c in (scene.test or scene.train)]
+                  torch.as_tensor(c.image, device=device)) for c in scene.evaluation_views]
         metrics = image_metrics(pairs, device, with_lpips=False)
         out["psnr_public"], out["ssim_public"] = metrics["psnr"], metrics["ssim"]
     return out

@@ -85,6 +85,13 @@ def test_sh_colours_match_the_degree_zero_colour_and_vary_with_view():
     assert torch.allclose(gram, torch.eye(16), atol=0.03)
 
 
+def test_view_dependent_colour_sends_a_gradient_to_the_means():
+    # As in 3DGS and gsplat, the view direction of SH degree ≥ 1 depends on the mean.
+    model = _random_model(n=20, sh_degree=2)
+    model.colors(torch.tensor([0.0, 0.0, -5.0])).sum().backward()
+    assert model.means.grad is not None and model.means.grad.abs().sum() > 0
+
+
 def test_raw_feature_field_renders_c_channels(tiny_scene):
     model = _random_model(n=200, sh_degree=None, channels=16)
     with torch.no_grad():

@@ -128,6 +128,27 @@ def test_strategy_keeps_statistics_aligned_with_anchors(tiny_scene):
     assert torch.unique(xyz, dim=0).shape[0] == xyz.shape[0]  # growing never duplicates an anchor
 
 
+def test_the_schedule_ends_before_update_until_and_every_adjustment_clamps_scales(tiny_scene):
+    # Scaffold-GS gathers and adjusts while start_stat < step < update_until, and prunes (clamping the
+    # Gaussians' log scales at 0.05) at every adjustment, whether or not an anchor goes.
+    strategy = ScaffoldStrategy(start_stat=0, update_from=0, update_interval=5, update_until=10,
+                                grad_threshold=1e9, min_opacity=0.0)
+    assert [s for s in range(12) if strategy.gathers_at(s)] == list(range(1, 10))
+    trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=5, raster=CPU_RASTER), strategy=strategy)
+    with torch.no_grad():
+        trainer.model.anchors.scaling[:, 3:] = 0.5
+    for _ in range(5):
+        changed = trainer.step()
+    assert changed["grown"] == 0 and changed["pruned"] == 0  # step 5 adjusted and removed nothing
+    assert float(trainer.model.anchors.scaling[:, 3:].max()) <= float(torch.tensor(0.05))
+
+
+def test_learning_rate_pairs_are_checked():
+    with pytest.raises(ValueError, match=r"mlp_cov_lr must be positive \(or all 0: frozen\), got \(0.004, 0.0\)"):
+        TrainConfig(mlp_cov_lr=(0.004, 0.0))
+    assert TrainConfig(feature_lr=0.0).feature_lr == 0.0
+
+
 def test_training_reduces_loss(tiny_scene):
     trainer = ScaffoldTrainer(tiny_scene, TrainConfig(iterations=60, raster=CPU_RASTER))
     before = trainer.evaluate(timing_repeats=1)["psnr"]
@@ -182,6 +203,7 @@ def test_cli_train_eval_render_export_and_resume(tmp_path, monkeypatch):
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["psnr"] > 12 and 0 < metrics["ssim"] <= 1 and metrics["fps"] > 0 and metrics["size_mb"] > 0
     assert metrics["lpips"] is None or metrics["lpips"] >= 0
+    assert metrics["split"] == "test"  # held-out views; "train" where a scene holds none out
     steps = [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
     assert steps[-1] == 30
     assert sorted(p.name for p in (run / "renders").iterdir()) == ["test_000.png", "test_001.png"]

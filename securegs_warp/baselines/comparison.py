@@ -210,7 +210,7 @@ def _working_size_note(ev: dict, config: StegaNeRFConfig) -> str:
 
 @torch.no_grad()
 def _hidden_psnr_stega(stega: StegaNeRF) -> float:
-    cams = stega.scene.test or stega.scene.train
+    cams = stega.scene.evaluation_views
     return evaluation.image_metrics([(stega.render_hidden(c)["image"], stega.hidden) for c in cams], stega.device,
                                     with_lpips=False)["psnr"]
 
@@ -233,7 +233,7 @@ def run_securegs(setup: Setup, method: str = "securegs") -> tuple[dict, np.ndarr
     _train(trainer, label, setup)
     ev, hid = trainer.evaluate(), trainer.evaluate_hidden()
     after = {}
-    ctx = AttackContext(setup.scene.test or setup.scene.train, setup.train.raster, setup.background,
+    ctx = AttackContext(setup.scene.evaluation_views, setup.train.raster, setup.background,
                         torch.Generator().manual_seed(0), setup.scene, TrainConfig())
     original = trainer.model
     for attack in setup.parsed_attacks:

@@ -373,7 +373,7 @@ def evaluate_gs_hider(model: GSHiderModel, scene: SceneData, payload: Payload, o
     alone gives of the hidden message); fps_public, fps_hidden (rasterize + decoder);
     gaussians.
     """
-    cams = scene.test or scene.train
+    cams = scene.evaluation_views
     cover = evaluation.evaluate_views(lambda c: {"image": model.render_public(c, options)}, cams, model.device,
                                       timing_repeats=timing_repeats)
     if payload.views is not None and payload.test_views is not None and scene.test:

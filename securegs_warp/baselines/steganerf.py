@@ -228,7 +228,7 @@ class StegaNeRF:
         (``psnr_hidden_ceiling``: ``working_size_ceiling``), what the decoder reads from
         the original scene's renders (``psnr_hidden_from_original``: a decoder that paints M onto
         anything would score high there), and the FPS of the public render and of render + decoder."""
-        cams = self.scene.test or self.scene.train
+        cams = self.scene.evaluation_views
         cover = evaluation.evaluate_views(self.render, cams, self.device, timing_repeats=timing_repeats)
         hidden = evaluation.image_metrics([(self.render_hidden(c)["image"], self.hidden) for c in cams], self.device,
                                           with_lpips=False)

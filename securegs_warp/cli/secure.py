@@ -294,7 +294,7 @@ def key_metadata(trainer, secret: int) -> dict:
 def hidden_cameras(trainer, payload) -> list[Camera]:
     """The cameras a payload is revealed from: its image's view, or the held-out (else training) views."""
     scene = trainer.scene
-    return [scene.train[payload.image_view]] if payload.image_view is not None else (scene.test or scene.train)
+    return [scene.train[payload.image_view]] if payload.image_view is not None else scene.evaluation_views
 
 
 def finish_container(trainer, run: RunFolder, config: RunConfig, secrets: list[SecretOptions]) -> dict:
@@ -426,7 +426,7 @@ def args_scene_cameras(args) -> list[Camera]:
 
     given = {name.split(".", 1)[1]: v for name, v in vars(args).items() if name.startswith("scene.") and v is not None}
     scene = apply_overrides(SceneSpec(), given).load()
-    return scene.test or scene.train
+    return scene.evaluation_views
 
 
 def cmd_demo(args) -> int:

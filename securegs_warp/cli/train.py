@@ -61,17 +61,19 @@ def background_of(scene, device) -> torch.Tensor | None:
 
 
 def evaluate_model(model: ScaffoldModel | GaussianModel, scene, config: RunConfig, run: RunFolder, device) -> dict:
-    """Held-out metrics and FPS of the public render; writes the held-out renders as PNGs."""
+    """Held-out metrics (``scene.evaluation_views``) and FPS of the public render; writes the renders as PNGs."""
     background = background_of(scene, device)
 
     def render(cam):
         return model.render(cam, config.train.raster, background=background)
 
-    cams = scene.test or scene.train
+    cams = scene.evaluation_views
     with torch.no_grad():
         metrics = evaluate_views(render, cams, device, with_lpips=True,
                                  on_render=lambda cam, image: save_png(run.renders / png_name(cam.name), image))
-    return {**metrics, "size_mb": round(folder_size_mb(run.model), 3), "device": str(device)}
+    # "split": "train" where the scene holds no view out, so the figures are not held-out ones.
+    return {**metrics, "split": scene.evaluation_split, "size_mb": round(folder_size_mb(run.model), 3),
+            "device": str(device)}
 
 
 def load_run(path, device) -> tuple[ScaffoldModel | GaussianModel, RunConfig, RunFolder]:

@@ -194,6 +194,17 @@ class SceneData:
         return self.train + self.test
 
     @property
+    def evaluation_views(self) -> list[Camera]:
+        """The held-out views, or the training views where the scene holds none out
+        (``evaluation_split`` says which: metrics of training views are no held-out figures)."""
+        return self.test or self.train
+
+    @property
+    def evaluation_split(self) -> str:
+        """"test" or "train": the views ``evaluation_views`` gives."""
+        return "test" if self.test else "train"
+
+    @property
     def cameras_extent(self) -> float:
         """Radius of the training cameras around their mean centre, times 1.1 (3DGS's scene scale,
         which sets learning rates and densification thresholds)."""

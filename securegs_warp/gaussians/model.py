@@ -125,7 +125,8 @@ class GaussianModel(nn.Module):
         coeffs = torch.cat([self.features_dc[:, None, :], self.features_rest[:, : (degree + 1) ** 2 - 1]], dim=1)
         if degree == 0:
             return (SH_C0 * coeffs[:, 0] + 0.5).clamp_min(0.0)
-        dirs = torch.nn.functional.normalize(self.means.detach() - camera_center, dim=1)
+        # Not detached: 3DGS and gsplat send the view direction's gradient into the means too.
+        dirs = torch.nn.functional.normalize(self.means - camera_center, dim=1)
         return ((sh_basis(degree, dirs)[:, :, None] * coeffs).sum(dim=1) + 0.5).clamp_min(0.0)
 
     def activated(self) -> dict:

@@ -426,7 +426,7 @@ class SecureTrainer(ScaffoldTrainer):
                 out["hidden_learnt"] = out["psnr_hidden"] > flat + HIDDEN_LEARNT_MARGIN_DB
             else:
                 out["psnr_hidden_flat"] = out["hidden_learnt"] = None
-            cams = self.scene.test or self.scene.train
+            cams = self.scene.evaluation_views
             out["fps_hidden"] = evaluation.render_fps(lambda cam: self.render_hidden(cam, secret=secret), cams,
                                                       self.device)
         if p.bits is not None:

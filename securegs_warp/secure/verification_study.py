@@ -57,7 +57,7 @@ def random_prune(anchors: AnchorModel, fraction: float, generator: torch.Generat
     n = pruned.num_anchors
     mask = torch.zeros(n, dtype=torch.bool)
     mask[torch.randperm(n, generator=generator)[: round(fraction * n)]] = True
-    pruned.prune_anchors(mask)
+    pruned.prune_anchors(mask, max_log_gaussian_scale=None)  # an attack removes anchors, nothing else
     return pruned
 
 

@@ -93,7 +93,7 @@ class RegionAwareStrategy(ScaffoldStrategy):
         """branches: ``"public"``: (gaussians, info), and, when the step rendered hidden views,
         ``"hidden"``: a list of (gaussians, info, λ), one per secret rendered (λ: the weight of its
         loss, which ∇_hid is divided by; see hidden_grad_per_lambda)."""
-        if step <= self.start_stat or step > self.update_until:
+        if not self.gathers_at(step):
             return {}
         k = model.n_offsets
         self.accumulate(state, *branches["public"], k)

@@ -120,12 +120,17 @@ class ScaffoldStrategy:
         branches: name -> (gaussians, info) of each render of the step: ``"public"`` always,
         ``"hidden"`` for SecureGS. Scaffold-GS densifies from the public render alone.
         """
-        if step <= self.start_stat or step > self.update_until:
+        if not self.gathers_at(step):
             return {}
         self.accumulate(state, *branches["public"], model.n_offsets)
         if step > self.update_from and step % self.update_interval == 0:
             return self.adjust(model, optimizer, state, generator)
         return {}
+
+    def gathers_at(self, step: int) -> bool:
+        """Whether step ``step`` gathers statistics (and may adjust): as Scaffold-GS, while
+        start_stat < step < update_until."""
+        return self.start_stat < step < self.update_until
 
     def growth_threshold(self, model: AnchorModel, state: dict) -> float | torch.Tensor:
         """Gradient threshold for growing: one number, or one per neural Gaussian [N·k]."""
@@ -177,7 +182,9 @@ class ScaffoldStrategy:
                     state[name] = value.view(-1, k, *rest)[keep].reshape(-1, *rest)
                 elif name in self.anchor_state_keys:
                     state[name] = value[keep]
-            model.prune_anchors(prune, optimizer)
+        # Even with nothing to remove: Scaffold-GS prunes (and so clamps the Gaussians' log scales,
+        # see prune_anchors) at every adjustment.
+        model.prune_anchors(prune, optimizer)
         return int(prune.sum())
 
     def adjust(self, model, optimizer, state, generator=None) -> dict:
