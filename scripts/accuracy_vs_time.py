@@ -53,6 +53,7 @@ import os
 import torch
 import warp as wp
 
+from securegs_warp import benchmark
 from securegs_warp.benchmark import SCENE_KINDS, SECTIONS, write
 
 
@@ -92,7 +93,7 @@ def main():
     wp.init()
 
     rows = [row for name in args.sections.split(",") for row in SECTIONS[name].run(args)]
-    device = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU ({os.cpu_count()} cores)"
+    device = benchmark.device_label(args.device) if benchmark.on_cuda(args.device) else f"CPU ({os.cpu_count()} cores)"
     title = (f"{device}, warp {wp.__version__}, torch {torch.__version__}, {datetime.date.today()}; "
              f"times: median of {args.rounds} interleaved rounds, ms")
     print(write(rows, args.out, title))

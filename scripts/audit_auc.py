@@ -20,6 +20,9 @@ from securegs_warp.secure.steganalysis import auc_by_model
 
 # What makes folders one run: the same scene, hidden object and budget, and the same seed.
 RUN_KEYS = SCENE_AND_BUDGET + ("seed",)
+# What a run's plain model depends on: not the hidden object nor where it stands (a plain model never
+# sees them), so runs that differ only there are one cover and never each other's reference.
+COVER_KEYS = tuple(k for k in RUN_KEYS if k not in ("hidden", "placement"))
 
 
 def models(arrays: dict) -> dict:
@@ -27,21 +30,24 @@ def models(arrays: dict) -> dict:
     return {name: xyz for name, xyz in arrays.items() if name not in SCENE_ARRAYS}
 
 
-def load_runs(paths: list[str]) -> list[dict]:
-    """The runs of ``paths``: each .npz one run; folders grouped by RUN_KEYS of their reports."""
-    runs, groups = [], {}
+def load_runs(paths: list[str]) -> tuple[list[dict], list]:
+    """The runs of ``paths`` and their covers (``auc_by_model``): each .npz one run and its own cover;
+    folders grouped by RUN_KEYS of their reports, their covers by COVER_KEYS."""
+    runs, covers, groups = [], [], {}
     for path in map(Path, paths):
         if not path.is_dir():
             with np.load(path, allow_pickle=False) as data:  # no pickled objects
                 runs.append(models({name: data[name] for name in data.files}))
+            covers.append(str(path))
             continue
         report, arrays = read_report(path)
-        group = groups.setdefault(tuple(report["meta"][k] for k in RUN_KEYS), {})
+        meta = report["meta"]
+        group = groups.setdefault(tuple(meta[k] for k in RUN_KEYS), ({}, tuple(meta[k] for k in COVER_KEYS)))[0]
         for label, xyz in models(arrays).items():
             if label in group:
                 raise SystemExit(f"{path}: a second {label!r} for one scene, seed and budget")
             group[label] = xyz
-    return runs + list(groups.values())
+    return runs + [g for g, _ in groups.values()], covers + [c for _, c in groups.values()]
 
 
 def main():
@@ -52,10 +58,10 @@ def main():
     ap.add_argument("--json", help="also write the scores and AUCs here")
     args = ap.parse_args()
     try:
-        runs = load_runs(args.runs)
+        runs, covers = load_runs(args.runs)
     except (OSError, KeyError, ValueError) as e:
         raise SystemExit(f"cannot read the runs: {e}") from None
-    result = auc_by_model(runs, BASELINE, args.with_reference)
+    result = auc_by_model(runs, BASELINE, args.with_reference, covers)
     print("| model | audits | scores | AUC against the plain models |\n|---|---|---|---|")
     for label, r in result.items():
         auc = f"{r['auc']:.2f}" if "auc" in r else "–"

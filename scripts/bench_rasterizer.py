@@ -9,7 +9,8 @@ breakdown (torch.profiler) of every renderer's forward+backward, each with its o
     python scripts/bench_rasterizer.py                       # GPU: 100k, 1M, 3M at 1920×1080
     python scripts/bench_rasterizer.py --device cpu --sizes 2000 --width 320 --height 180 --runs 3
 
-Absolute times mean something only on the GPU; the ratios are measured in one run, interleaved.
+Absolute times mean something only on the GPU; the ratios are measured in one run (each renderer's
+runs one after the other, so drift between them enters the ratios).
 The scenes, timing and comparisons are securegs_warp.benchmark's.
 """
 import argparse
@@ -56,11 +57,11 @@ def main():
         for n in sizes:
             row = benchmark.benchmark_scene(kind, n, args.width, args.height, args.device, options, variants,
                                             with_gsplat=with_gsplat, warmup=args.warmup, runs=args.runs,
-                                            breakdown=args.device == "cuda" and n == 1_000_000)
+                                            breakdown=benchmark.on_cuda(args.device) and n == 1_000_000)
             rows.append(row)
             print(json.dumps(row), flush=True)
 
-    device_name = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
+    device_name = benchmark.device_label(args.device)
     table = benchmark.benchmark_table(rows, f"{device_name}, {args.width}×{args.height}, median of {args.runs} "
                                             f"runs, ours with {benchmark.options_text(options) or 'default options'}")
     print(table)

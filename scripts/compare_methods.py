@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from securegs_warp import benchmark
 from securegs_warp.baselines.comparison import DEFAULT_ATTACKS, METHODS, PAYLOADS, make_setup, plot, run_all, write_report
 from securegs_warp.cli.common import quiet_warp
 from securegs_warp.data import make_synthetic_scene
@@ -60,7 +61,7 @@ def main():
     args = ap.parse_args()
     p = dict(PRESETS[args.preset])
     p.update({k: v for k, v in vars(args).items() if k in p and v is not None})
-    if p["device"] == "cuda" and not torch.cuda.is_available():
+    if benchmark.on_cuda(p["device"]) and not torch.cuda.is_available():
         ap.error("the preset wants CUDA and this torch has none; pass --device cpu")
     if p["device"] == "cpu":
         torch.set_num_threads(max(1, (os.cpu_count() or 2) // 2))
@@ -80,7 +81,7 @@ def main():
                                 check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
-    device = torch.cuda.get_device_name() if p["device"] == "cuda" else "CPU"
+    device = benchmark.device_label(p["device"])
     meta = {**p, "device": device, "payload": args.payload, "hide": args.hide, "preset": args.preset,
             "date": time.strftime("%Y-%m-%d", time.gmtime()), "commit": commit, "attacks": setup.attacks,
             "seed": args.seed, "steganerf_tune": args.steganerf_tune,

@@ -68,7 +68,7 @@ def main():
         parser.error(str(e))
     if args.phase == "finish" and args.warmup < 1:
         parser.error("--phase finish needs a joint run before its phase: --warmup 1 or more")
-    if args.syncs and args.device != "cuda":
+    if args.syncs and not benchmark.on_cuda(args.device):
         parser.error("--syncs names CUDA synchronisations: it needs --device cuda")
     quiet_warp()
     scene = make_synthetic_scene(hidden=args.hide, level="object", width=args.width, height=args.height,
@@ -105,7 +105,7 @@ def main():
         if args.syncs:
             syncs[label] = step_profile.census_syncs(trainer, args.steps)
         del trainer
-    device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
+    device = benchmark.device_label(args.device)
     after = f"{PHASE_WARMUP} finishing steps after a joint run of {args.warmup}" if finish else str(args.warmup)
     setup = (f"{device}, synthetic {args.width}×{args.height}, payload {args.payload}, mean of {args.steps} "
              f"steps after {after}, raster {benchmark.options_text(raster) or 'default options'}")

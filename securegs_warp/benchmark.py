@@ -99,7 +99,7 @@ def timed(fn, backward: bool, device: str, warmup: int, runs: int, grads) -> flo
 
     ``fn() -> (image [H, W, C], alpha [H, W, 1])``; with ``backward`` the loss
     Σ image·grads[0] + Σ alpha·grads[1] is backpropagated inside the timed region. CUDA events on
-    ``device == "cuda"``, ``time.perf_counter`` otherwise.
+    a CUDA ``device``, ``time.perf_counter`` otherwise.
     """
     if runs < 1 or warmup < 0:
         raise ValueError(f"need runs >= 1 and warmup >= 0, got runs={runs}, warmup={warmup}")
@@ -113,7 +113,7 @@ def timed(fn, backward: bool, device: str, warmup: int, runs: int, grads) -> flo
         once()
     times = []
     for _ in range(runs):
-        if device == "cuda":
+        if on_cuda(device):
             start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             start.record()
             once()
@@ -142,9 +142,19 @@ def ours(scene: dict, viewmat, K, width: int, height: int, options: RasterOption
     return image, alpha
 
 
+def on_cuda(device) -> bool:
+    """Whether ``device`` ("cuda", "cuda:1", a torch.device ...) is a CUDA device."""
+    return torch.device(device).type == "cuda"
+
+
+def device_label(device) -> str:
+    """The GPU's name on CUDA, else "cpu": what the tables name as the machine."""
+    return torch.cuda.get_device_name(torch.device(device)) if on_cuda(device) else "cpu"
+
+
 def gsplat_available(device: str) -> bool:
     """Whether ``gsplat_render`` can run: gsplat is installed and the device is CUDA."""
-    if device != "cuda":
+    if not on_cuda(device):
         return False
     try:
         import gsplat  # noqa: F401

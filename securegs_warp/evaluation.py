@@ -1,6 +1,7 @@
 """Held-out evaluation of a model: PSNR, SSIM, LPIPS when possible, and rendering speed."""
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -27,10 +28,12 @@ def lpips_model(device):
 
 
 @torch.no_grad()
-def image_metrics(pairs, device, with_lpips: bool = True) -> dict:
-    """Mean PSNR / SSIM (/ LPIPS) over (render [H,W,3], target [H,W,3]) pairs."""
+def image_metrics(pairs, device, with_lpips: bool = True, psnr_cap: float | None = None) -> dict:
+    """Mean PSNR / SSIM (/ LPIPS) over (render [H,W,3], target [H,W,3]) pairs; ``psnr_cap``: each
+    view's PSNR at most this (an identical view's is inf, which would make the mean inf)."""
     pairs = list(pairs)
-    out = {"psnr": float(np.mean([psnr(a, b) for a, b in pairs])),
+    cap = math.inf if psnr_cap is None else psnr_cap
+    out = {"psnr": float(np.mean([min(psnr(a, b), cap) for a, b in pairs])),
            "ssim": float(np.mean([float(ssim(a.clamp(0, 1), b)) for a, b in pairs]))}
     net, reason = lpips_model(device) if with_lpips else (None, "LPIPS not requested")
     if net is None:

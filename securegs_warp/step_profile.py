@@ -123,6 +123,10 @@ def _section_patches(trainer, wrap) -> list:
     ]
     if hasattr(trainer, "render_hidden"):
         patches.append((trainer, "render_hidden", wrap(trainer.render_hidden, "hidden heads")))
+    if hasattr(trainer, "_finishing_optimizer"):  # the finishing phase steps its own Adam (made here if not yet)
+        finishing = trainer._finishing_optimizer()
+        patches += [(finishing, "step", wrap(finishing.step, "adam")),
+                    (finishing, "zero_grad", wrap(finishing.zero_grad, "zero_grad"))]
     return patches
 
 

@@ -61,6 +61,12 @@ def test_auc_over_runs_with_and_without_a_reference():
         assert len(result["traced"]["scores"]) == (6 if with_reference else 3)
     with pytest.raises(ValueError, match="plain model"):
         auc_by_model([{"traced": runs[0]["traced"]}], "plain")
+    # Runs of one cover (their plain models one training, whatever they hide) are not each other's
+    # references: with runs 0 and 1 of one cover, each is audited against run 2's plain model only.
+    result = auc_by_model(runs, "plain", True, covers=["a", "a", "b"])
+    assert len(result["traced"]["scores"]) == 1 + 1 + 2
+    with pytest.raises(ValueError, match="at least two covers"):
+        auc_by_model(runs, "plain", True, covers=["a", "a", "a"])
 
 
 def test_sliced_wasserstein_tells_a_shifted_distribution():

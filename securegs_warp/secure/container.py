@@ -26,6 +26,7 @@ from ..rasterizer import RasterOptions
 from .heads import PrivateHeads
 from .keyed_bits import KeyedBitDecoder
 from .model import SecureModel
+from .payload import PayloadSpec
 
 PUBLIC_DIR = "public"
 PLAIN_KEY, SEALED_KEY = "key.safetensors", "key.sealed"
@@ -151,7 +152,9 @@ class KeyViews:
 
     cameras: every camera the key stores; hidden: those that show the hidden payload. raster: the
     rasterizer options. background, hidden_background: [3] colours (None: black). message: [L] 0/1
-    int64, or None without bits.
+    int64, or None without bits. scene_targets: whether the scene's hidden views are this secret's
+    targets (an object or a scene; an image secret's target is its image, even where another secret
+    of the release makes the scene render an object).
     """
 
     cameras: list[Camera]
@@ -160,6 +163,7 @@ class KeyViews:
     background: torch.Tensor | None
     hidden_background: torch.Tensor | None
     message: torch.Tensor | None
+    scene_targets: bool = True
 
     @classmethod
     def from_metadata(cls, meta: dict, device) -> "KeyViews":
@@ -167,7 +171,10 @@ class KeyViews:
         names = set(meta.get("hidden_views", []))
         colour = lambda v: None if v is None else torch.tensor(v, dtype=torch.float32, device=device)  # noqa: E731
         message = meta.get("heads", {}).get("message")  # the keyed bit decoder's message
+        payload = meta.get("payload")
+        scene_targets = payload is None or PayloadSpec.parse(payload).kind in ("object", "scene")
         return cls(cams, [c for c in cams if c.name in names],
                    from_dict(RasterOptions, meta.get("raster", {}), "key raster options"),
                    colour(meta.get("background")), colour(meta.get("hidden_background")),
-                   None if message is None else torch.tensor([int(b) for b in message], device=device))
+                   None if message is None else torch.tensor([int(b) for b in message], device=device),
+                   scene_targets)

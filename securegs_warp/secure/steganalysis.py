@@ -228,20 +228,28 @@ def leakage(xyz: np.ndarray, hidden_points: np.ndarray, reference_xyz: np.ndarra
     return out
 
 
-def auc_by_model(runs: list[dict[str, np.ndarray]], plain: str, with_reference: bool = False) -> dict:
+def auc_by_model(runs: list[dict[str, np.ndarray]], plain: str, with_reference: bool = False,
+                 covers: list | None = None) -> dict:
     """Detection AUC of the audit's score for each kind of model in ``runs`` (one dict per run of
     one scene: model label -> anchor positions [N, 3]; ``plain`` labels the plain Scaffold-GS
     models). ``with_reference``: every model of run i is audited against the plain model of every
-    other run j (the attacker's reference is a plain model trained apart, never the one of the same
-    run); otherwise without a reference. Returns {label: {"auc", "scores"}}, plain's scores under
+    other run j trained apart (the attacker's reference, never the same training as run i's own
+    plain model); otherwise without a reference. ``covers``: per run, what its plain model's training
+    depends on (scene, budget, seed: not the hidden object, which a plain model never sees); runs of
+    one cover are not each other's references, since their plain models are the same training.
+    None: every run's cover is its own. Returns {label: {"auc", "scores"}}, plain's scores under
     ``plain``."""
     if any(plain not in run for run in runs):
         raise ValueError(f"every run needs a plain model labelled {plain!r}")
-    if with_reference and len(runs) < 2:
-        raise ValueError("auditing against a reference needs at least two runs")
+    covers = list(range(len(runs))) if covers is None else list(covers)
+    if len(covers) != len(runs):
+        raise ValueError(f"{len(covers)} covers for {len(runs)} runs")
     scores: dict[str, list[float]] = {}
     for i, run in enumerate(runs):
-        references = [other[plain] for j, other in enumerate(runs) if j != i] if with_reference else [None]
+        references = [other[plain] for j, other in enumerate(runs) if covers[j] != covers[i]] \
+            if with_reference else [None]
+        if not references:
+            raise ValueError("auditing against a reference needs runs of at least two covers (scene, budget, seed)")
         for label, xyz in run.items():
             scores.setdefault(label, []).extend(
                 float(region_scores(xyz, ref)["score"].max(initial=0.0)) for ref in references)
