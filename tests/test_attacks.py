@@ -305,6 +305,24 @@ def test_a_failing_attack_leaves_the_earlier_release(container, tmp_path, capsys
         assert (tmp_path / "a" / "point_cloud.ply").read_bytes() == before
 
 
+def test_an_identical_view_does_not_hide_the_others_loss():
+    # One view an attack left untouched scores inf; capped view by view, the mean keeps the others.
+    from securegs_warp.evaluation import image_metrics
+
+    target = torch.rand(8, 8, 3, generator=torch.Generator().manual_seed(0))
+    damaged = (target + 0.1).clamp(0, 1)
+    metrics = image_metrics([(target, target), (damaged, target)], "cpu", with_lpips=False, psnr_cap=100.0)
+    assert metrics["psnr"] < 100.0 and metrics["psnr"] == pytest.approx((100.0 + image_metrics(
+        [(damaged, target)], "cpu", with_lpips=False)["psnr"]) / 2)
+
+
+@pytest.mark.parametrize("payload, expected", [("object+bits:48", True), ("image:builtin@0", False),
+                                               ("bits:48", False), (None, True)])
+def test_only_an_object_or_scene_key_is_scored_against_the_scenes_hidden_views(payload, expected):
+    meta = {} if payload is None else {"payload": payload}
+    assert KeyViews.from_metadata(meta, "cpu").scene_targets is expected
+
+
 def test_attack_cli_refuses_bad_specs(container, capsys):
     code = main(["attack", str(container / "public"), "--key", str(container / "key.safetensors"),
                  "--attack", "prune:0.2"])
