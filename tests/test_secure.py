@@ -49,7 +49,13 @@ def test_payload_spec_parsing():
     spec = PayloadSpec.parse("image:builtin@3")
     assert (spec.kind, spec.image, spec.image_view) == ("image", "builtin", 3)
     assert PayloadSpec.parse("bits:01101").bit_string == "01101"
-    for bad, match in (("bits:0", "length"), ("bits:300", "length"), ("sound", "unknown payload"), ("", "empty")):
+    # The last @ starts the view: a file name may hold an @ of its own.
+    assert (PayloadSpec.parse("image:me@2x.png@2").image, PayloadSpec.parse("image:me@2x.png@2").image_view) == \
+        ("me@2x.png", 2)
+    assert (PayloadSpec.parse("image:logo.png").image, PayloadSpec.parse("image").image) == ("logo.png", "builtin")
+    for bad, match in (("bits:0", "length"), ("bits:300", "length"), ("sound", "unknown payload"), ("", "empty"),
+                       ("image:@3", "file name is empty"), ("image:logo.png@", "training view index"),
+                       ("image:logo.png@x", "training view index")):
         with pytest.raises(ValueError, match=match):
             PayloadSpec.parse(bad)
 

@@ -54,9 +54,15 @@ class PayloadSpec:
                 if spec.kind is not None:
                     raise ValueError(f"payload {text!r}: at most one of object, scene and image per container")
                 if name == "image":
-                    path, _, view = (arg or "builtin").partition("@")
-                    if not view.isdigit() and view:
-                        raise ValueError(f"image payload {part!r}: the view after @ must be a training view index")
+                    # The last @ starts the view: a file name may hold one of its own (me@2x.png@0).
+                    path, at, view = (arg or "builtin").rpartition("@")
+                    if not at:
+                        path, view = view, ""
+                    if not path:
+                        raise ValueError(f"image payload {part!r}: the file name is empty")
+                    if at and not view.isdigit():
+                        raise ValueError(f"image payload {part!r}: the view after the last @ must be a training view "
+                                         "index (a file name with an @ of its own takes one: FILE@0)")
                     spec.image, spec.image_view = path, int(view or 0)
                 elif arg:
                     raise ValueError(f"payload {part!r}: {name} takes no argument")
