@@ -115,8 +115,9 @@ def add_config_flags(parser: argparse.ArgumentParser, flags, defaults: dict | No
         if types[field] is bool:
             parser.add_argument(flag, dest=field, action="store_const", const=True, default=None, help=helptext)
         else:
-            parser.add_argument(flag, dest=field, default=None, metavar=field.rsplit(".", 1)[-1].upper(),
-                                help=f"{helptext} (default: {default})")
+            # A help text that states its own default (one that depends on the device) keeps it.
+            shown = helptext if "(default:" in helptext else f"{helptext} (default: {default})"
+            parser.add_argument(flag, dest=field, default=None, metavar=field.rsplit(".", 1)[-1].upper(), help=shown)
 
 
 def _default_of(field: str):

@@ -461,7 +461,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--out", default="revealed", help="folder for the renders (default: revealed)")
     p.add_argument("--force", action="store_true", help="replace an earlier reveal in --out (nothing else)")
     p.add_argument("--device", help="cpu or cuda[:N] (default: cuda when available)")
-    common.add_config_flags(p, common.SCENE_FLAGS)
+    common.add_config_flags(p, common.SCENE_FLAGS, {"scene.source": "none; needed without --key"})
     p.set_defaults(func=cmd_reveal)
 
     p = sub.add_parser("demo", help="hide an object and 48 bits in the built-in scene; write release, key, "
