@@ -5,9 +5,9 @@ A key is a ``.safetensors`` file: named tensors (``offset_mlp.0.weight`` ...) pl
 ``sha256=<checksum>`` over the tensors, the fingerprint and the metadata together (``reveal`` and
 ``verify`` read the message, the bit seed and the cameras from the metadata: editing them must be
 detected like editing a weight). Version 1 keys, whose checksum covered the tensors alone, are still
-read, since a key is the only way back to its secret. safetensors rather than ``torch.save`` because a pickle runs code when it is
-loaded, and key files get passed around: reading a key must never execute anything. Only
-safetensors and JSON are ever parsed here.
+read, since a key is the only way back to its secret. safetensors rather than ``torch.save`` because
+a pickle runs code when it is loaded, and key files get passed around: reading a key must never
+execute anything. Only safetensors and JSON are ever parsed here.
 
 With a passphrase the same bytes are sealed in an envelope::
 
