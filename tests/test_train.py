@@ -341,3 +341,25 @@ def test_volume_loss_over_kept_rows_ignores_the_others_even_when_infinite():
     assert torch.allclose(volume_loss(scales, kept), volume_loss(reference))
     assert torch.equal(scales.grad[~kept], torch.zeros(1, 3))
     assert torch.allclose(scales.grad[kept], reference.grad)
+
+
+def test_training_views_render_with_their_own_appearance_row(tmp_path):
+    # With an appearance embedding, training view i trained with row i (Scaffold-GS's camera uid):
+    # `securegs render --split train` draws it with that row, not row 0.
+    import imageio.v3 as iio
+    import numpy as np
+
+    from securegs_warp.cli.train import background_of, load_run
+    from securegs_warp.runs import png_name
+
+    run = tmp_path / "run"
+    assert main(["train", "--out", str(run), "--iterations", "20", "--appearance-dim", "8", "--quiet", "--width",
+                 "48", "--height", "36", "--train-views", "4", "--test-views", "1"]) == 0
+    assert main(["render", str(run), "--split", "train", "--out", str(tmp_path / "r")]) == 0
+    model, config, _ = load_run(run, "cpu")
+    scene = config.scene.load()
+    with torch.no_grad():
+        for i, cam in enumerate(scene.train):
+            own = model.render(cam, config.train.raster, background=background_of(scene, "cpu"), camera_index=i)
+            png = iio.imread(tmp_path / "r" / "renders" / png_name(cam.name)) / 255.0
+            assert np.abs(png - own["image"].clamp(0, 1).numpy()).max() <= 1.0 / 255.0 + 1e-6, cam.name

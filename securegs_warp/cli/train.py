@@ -64,8 +64,8 @@ def evaluate_model(model: ScaffoldModel | GaussianModel, scene, config: RunConfi
     """Held-out metrics (``scene.evaluation_views``) and FPS of the public render; writes the renders as PNGs."""
     background = background_of(scene, device)
 
-    def render(cam):
-        return model.render(cam, config.train.raster, background=background)
+    def render(cam):  # a training view (no view held out) with its own appearance row
+        return model.render(cam, config.train.raster, background=background, camera_index=scene.camera_index(cam))
 
     cams = scene.evaluation_views
     with torch.no_grad():
@@ -96,8 +96,8 @@ def cmd_render(args) -> int:
     background = background_of(scene, device)
     with torch.no_grad():
         for cam in cams:
-            save_png(out.renders / png_name(cam.name),
-                     model.render(cam, config.train.raster, background=background)["image"].clamp(0, 1))
+            image = model.render(cam, config.train.raster, background=background, camera_index=scene.camera_index(cam))
+            save_png(out.renders / png_name(cam.name), image["image"].clamp(0, 1))
     print(f"wrote {len(cams)} renders to {out.renders}")
     return 0
 

@@ -199,6 +199,11 @@ class SceneData:
         (``evaluation_split`` says which: metrics of training views are no held-out figures)."""
         return self.test or self.train
 
+    def camera_index(self, cam: Camera) -> int | None:
+        """A training view's index, the row of the appearance embedding it trained with (as
+        Scaffold-GS's camera uid); None for a held-out view, which renders with row 0."""
+        return next((i for i, c in enumerate(self.train) if c is cam), None)
+
     @property
     def evaluation_split(self) -> str:
         """"test" or "train": the views ``evaluation_views`` gives."""

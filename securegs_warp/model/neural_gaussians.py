@@ -268,9 +268,11 @@ def visible_anchor_mask(
     that test in torch (no dependency on the Warp rasterizer, no gradients), as 3DGS / gsplat's
     classic projection does: depth > ``near_plane`` (gsplat's default; 3DGS uses 0.2); EWA 2D
     covariance with the Jacobian's x/z, y/z clamped to 1.3x the field of view, plus ``eps2d`` on the
-    diagonal; radius ``ceil(3 sqrt(largest eigenvalue))`` pixels; visible iff the square of that
-    half-width around the projected centre ``(fx x/z + cx, fy y/z + cy)`` overlaps the image. 3DGS
-    tests the overlap in 16-pixel tiles, so it keeps a few more anchors near the border than we do.
+    diagonal; radius ``ceil(3 sqrt(largest eigenvalue))`` pixels (the eigenvalues' discriminant
+    floored at 0.01, gsplat's; 3DGS floors it at 0.1); visible iff the square of that half-width
+    around the projected centre ``(fx x/z + cx, fy y/z + cy)`` overlaps the image (3DGS's pixel
+    coordinates are half a pixel lower). 3DGS tests the overlap in 16-pixel tiles, so it keeps a few
+    more anchors near the border than we do.
 
     Args:
         viewmat: [4, 4] world-to-camera, OpenCV axes.
