@@ -130,8 +130,8 @@ class ScaffoldStrategy:
     def gathers_at(self, step: int) -> bool:
         """Whether step ``step`` gathers statistics (and may adjust): start_stat < step <= update_until.
         Scaffold-GS stops before update_until; here the window keeps update_until, one adjustment
-        more, as every table in docs/results.md was measured (the exclusive window cost one seed's
-        hidden object 2.1 dB there: "Scaffold-GS's schedule window and scale clamp")."""
+        more, as every table in docs/results.md was measured ("Scaffold-GS's schedule window and scale
+        clamp" there has both ways)."""
         return self.start_stat < step <= self.update_until
 
     def growth_threshold(self, model: AnchorModel, state: dict) -> float | torch.Tensor:
@@ -186,8 +186,7 @@ class ScaffoldStrategy:
                     state[name] = value[keep]
             # Scaffold-GS prunes, and so clamps the Gaussians' log scales (prune_anchors), at every
             # adjustment; here only where an anchor goes, as every table in docs/results.md was
-            # measured. Clamping at every adjustment cost the hidden object at the demo's budget
-            # (docs/results.md, "Scaffold-GS's schedule window and scale clamp").
+            # measured ("Scaffold-GS's schedule window and scale clamp" there has both ways).
             model.prune_anchors(prune, optimizer)
         return int(prune.sum())
 
