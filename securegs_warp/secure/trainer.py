@@ -474,11 +474,12 @@ class SecureTrainer(ScaffoldTrainer):
                 raise ValueError(f"{path}: the run is {into} steps into a finishing phase with {name} {saved!r} "
                                  f"(--{name.replace('_', '-')}); resume it with that value, not {mine!r}")
 
-    def restore(self, state: dict, path) -> None:
-        # Before anything is loaded, so that a refused resume leaves this trainer as it was.
-        self._check_config(state.get("config"), path)
+    def check_checkpoint(self, state: dict, path) -> None:
+        super().check_checkpoint(state, path)
         self._check_phase(state, path)
         self._check_private(state, path)
+
+    def restore(self, state: dict, path) -> None:
         super().restore(state, path)
         self.bit_seeds = list(state["bit_seeds"])
         for private, p, saved, message, seed in zip(self.model.secrets, self.payloads, state["private"],

@@ -267,7 +267,7 @@ class ViewTrainer:
         self.restore(state, path)
 
     def restore(self, state: dict, path) -> None:
-        self._check_config(state.get("config"), path)
+        self.check_checkpoint(state, path)
         self.restore_model(state)
         self.optimizer.load_state_dict(state["optimizer"])
         self.strategy_state = state["strategy"]
@@ -275,6 +275,11 @@ class ViewTrainer:
         self._order = list(state["order"])
         self.step_count = int(state["step"])
         self.train_seconds = float(state["train_seconds"])
+
+    def check_checkpoint(self, state: dict, path) -> None:
+        """Refuse a checkpoint this trainer cannot continue, before anything of it is loaded (a
+        refused resume leaves the trainer as it was). Subclasses add their own checks."""
+        self._check_config(state.get("config"), path)
 
     def _check_config(self, saved: dict | None, path) -> None:
         """Refuse a checkpoint written with other options, naming the first field that differs."""
