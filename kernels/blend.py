@@ -10,8 +10,10 @@ the block-wide votes and sums reduce over one thread — the same code, correct 
 Warp's tape cannot differentiate this loop (dynamic trip count, early exit, multiplicative
 transmittance), so ``backward`` is written by hand, gsplat style: it walks each pixel's list back
 to front, recovering the transmittance from the final one. A Gaussian's gradient is summed over
-the 32 pixels of a CUDA warp with register shuffles (skipped when no lane touched it) and added
-to global memory by one lane: a block-wide reduction per Gaussian costs several times more.
+the pixels of a CUDA warp with register shuffles (skipped when no lane touched it) and added to
+global memory one value a lane (``gradient_scatter``), into one [N, 6 + C (+1)] table that a second
+kernel unpacks into the per-field gradients: a block-wide reduction per Gaussian costs several
+times more, and one lane adding every value serialises the atomics.
 
 Per-pixel rule (gsplat 1.5): centre at +0.5; σ = ½(a·dx² + c·dy²) + b·dx·dy, skipped if σ < 0;
 α = min(alpha_max, o·e^{−σ}), skipped if α < alpha_min; stop *before* a Gaussian that would bring
@@ -40,17 +42,6 @@ from .records import (COLOR_STORAGES, R_COLOR, R_DEPTH, colors_in_record, record
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-    for (int offset = 16; offset > 0; offset >>= 1) x += __shfl_xor_sync(0xffffffff, x, offset);
-#endif
-    return x;
-""")
-def warp_sum(x: float) -> float:
-    """Sum over the 32 lanes of a CUDA warp; on the CPU a thread is its own warp."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
     return __any_sync(0xffffffff, flag) != 0;
 #else
     return flag;
@@ -58,18 +49,6 @@ def warp_sum(x: float) -> float:
 """)
 def warp_any(flag: bool) -> bool:
     """True if any lane of the warp has ``flag`` (CPU: the thread's own flag)."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    return (threadIdx.x & 31) == 0;
-#else
-    return true;
-#endif
-""")
-def warp_leader() -> bool:
-    """The lane that writes a warp's sum (CPU: every thread writes its own value)."""
     ...
 
 
@@ -95,8 +74,96 @@ def block_barrier():
     ...
 
 
-# Gradient vector layout per Gaussian: [d mean2d (2), d conic (3), d opacity (1), d colour (C), d depth].
+# Gradient vector layout per Gaussian: [d mean2d (2), d conic (3), d opacity (1), d colour (C), d depth],
+# which is also the row layout of the backward's [N, gradient_width] output.
 _XY, _CONIC, _OPACITY, _COLOR = 0, 2, 5, 6
+
+
+def gradient_width(channels: int, with_depth: bool) -> int:
+    """Words of one Gaussian's row in the backward's gradient table (see ``_XY`` .. ``_COLOR``)."""
+    return _COLOR + channels + int(with_depth)
+
+
+def _scatter_chunk(c0: int, n: int) -> str:
+    """CUDA source summing values ``g[c0 .. c0 + n - 1]`` (n <= 32) over a warp and adding each sum
+    to ``grad[gid, c0 + k]`` from a lane of its own.
+
+    A transposed butterfly: at each shuffle distance a lane keeps half of its values and sends the
+    other half to its partner, which keeps the other half, so the values halve with each step until
+    a lane holds one (index ``idx``); the remaining steps are a plain butterfly. m values (m the power
+    of two >= n) take m - 1 + 5 - log2(m) shuffles instead of 5·n, and the n sums are added by n lanes
+    at once instead of one after the other by one lane."""
+    m = 1
+    while m < n:
+        m *= 2
+    lines = ["    {", f"        float v[{m}];"]
+    lines += [f"        v[{i}] = {f'g[{c0 + i}]' if i < n else '0.0f'};" for i in range(m)]
+    lines.append("        int idx = 0;")
+    offset, half = 16, m // 2
+    while half >= 1:
+        lines += [f"        {{ const bool up = (lane & {offset}) != 0;",
+                  f"          #pragma unroll",
+                  f"          for (int i = 0; i < {half}; ++i) {{",
+                  f"              const float send = up ? v[i] : v[i + {half}];",
+                  f"              const float keep = up ? v[i + {half}] : v[i];",
+                  f"              v[i] = keep + __shfl_xor_sync(0xffffffff, send, {offset});",
+                  f"          }}",
+                  f"          if (up) idx += {half}; }}"]
+        offset, half = offset // 2, half // 2
+    while offset >= 1:
+        lines.append(f"        v[0] += __shfl_xor_sync(0xffffffff, v[0], {offset});")
+        offset //= 2
+    # Lanes that differ only in the plain butterfly's bits hold the same sum: the lowest adds it.
+    lines.append(f"        if ((lane & {32 // m - 1}) == 0 && idx < {n}) "
+                 f"wp::atomic_add(wp::address(grad, gid, {c0} + idx), v[0]);")
+    lines.append("    }")
+    return "\n".join(lines)
+
+
+@functools.lru_cache(maxsize=None)
+def gradient_scatter(width: int):
+    """``scatter(g, grad, gid)``: add one Gaussian's gradient vector ``g`` [width], summed over the
+    32 lanes of a CUDA warp, to row ``gid`` of ``grad`` [N, width] (see ``_scatter_chunk``); every
+    lane of the warp must call it. On the CPU a thread is its own warp and adds its own ``g``."""
+    chunks = "\n".join(_scatter_chunk(c0, min(32, width - c0)) for c0 in range(0, width, 32))
+    snippet = f"""
+#if defined(__CUDA_ARCH__)
+    const int lane = threadIdx.x & 31;
+{chunks}
+#else
+    for (int k = 0; k < {width}; ++k) wp::atomic_add(wp::address(grad, gid, k), g[k]);
+#endif
+"""
+    Vec = wp.types.vector(length=width, dtype=wp.float32)
+
+    def scatter(g: Vec, grad: wp.array2d(dtype=wp.float32), gid: int):
+        ...
+
+    scatter.__name__ = scatter.__qualname__ = f"scatter_gradients_{width}"
+    return wp.func_native(snippet)(scatter)
+
+
+@functools.lru_cache(maxsize=None)
+def unpack_gradients_kernel(channels: int, with_depth: bool):
+    """Kernel writing the backward's gradient table ``grad`` [N, gradient_width] into the per-field
+    gradients the projection's adjoint and the caller read: v_means2d [N] vec2, v_conics [N] vec3,
+    v_opacities [N], v_colors [N, C] and, with depth, v_depths [N] (overwritten, not added to)."""
+    C = channels
+    DEPTH = int(with_depth)
+
+    def unpack(grad: wp.array2d(dtype=float), v_means2d: wp.array(dtype=wp.vec2), v_conics: wp.array(dtype=wp.vec3),
+               v_opacities: wp.array(dtype=float), v_colors: wp.array2d(dtype=float), v_depths: wp.array(dtype=float)):
+        i = wp.tid()
+        v_means2d[i] = wp.vec2(grad[i, _XY], grad[i, _XY + 1])
+        v_conics[i] = wp.vec3(grad[i, _CONIC], grad[i, _CONIC + 1], grad[i, _CONIC + 2])
+        v_opacities[i] = grad[i, _OPACITY]
+        for c in range(C):
+            v_colors[i, c] = grad[i, _COLOR + c]
+        if wp.static(DEPTH == 1):
+            v_depths[i] = grad[i, _COLOR + C]
+
+    unpack.__name__ = unpack.__qualname__ = f"unpack_gradients_c{C}{'_depth' if DEPTH else ''}"
+    return wp.kernel(unpack, enable_backward=False, module="unique")
 
 # Upper bound on the shared memory of one batch (bytes), to pick the batch size for wide colours.
 _BATCH_SHARED_BYTES = 24 * 1024
@@ -176,7 +243,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     B = batch
     COOP = cooperative
     DEPTH = 1 if with_depth else 0
-    NG = _COLOR + C + DEPTH
+    NG = gradient_width(C, with_depth)
     WARP_WALK = warp_walk
     PACKED = packed
     Q = record_width(C, color_storage) // 4  # vec4 columns of a record
@@ -188,6 +255,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     PixVec = wp.types.vector(length=PX, dtype=wp.float32)
     PixInt = wp.types.vector(length=PX, dtype=wp.int32)
     PixColor = wp.types.vector(length=PX * C, dtype=wp.float32)
+    scatter = gradient_scatter(NG)
 
     @wp.func
     def gather_records(sorted_ids: wp.array(dtype=wp.int32), records: wp.array2d(dtype=wp.vec4), b0: int,
@@ -339,11 +407,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         v_color: wp.array3d(dtype=float),
         v_alpha: wp.array3d(dtype=float),
         v_depth: wp.array3d(dtype=float),
-        v_means2d: wp.array(dtype=wp.vec2),
-        v_conics: wp.array(dtype=wp.vec3),
-        v_opacities: wp.array(dtype=float),
-        v_colors: wp.array2d(dtype=float),
-        v_depths: wp.array(dtype=float),
+        v_gaussians: wp.array2d(dtype=float),
         v_background: wp.array(dtype=float),
     ):
         # Thread ``lane`` walks the PX pixels of column lane % TS in rows PX·(lane // TS) + p of its
@@ -491,16 +555,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                                     g[_OPACITY] = g[_OPACITY] + vis * d_alpha
                 # Warp-uniform from here: every lane reaches the shuffles.
                 if warp_any(touched):
-                    for k in range(NG):
-                        g[k] = warp_sum(g[k])
-                    if warp_leader():
-                        wp.atomic_add(v_means2d, gid, wp.vec2(g[_XY], g[_XY + 1]))
-                        wp.atomic_add(v_conics, gid, wp.vec3(g[_CONIC], g[_CONIC + 1], g[_CONIC + 2]))
-                        wp.atomic_add(v_opacities, gid, g[_OPACITY])
-                        for c in range(C):
-                            wp.atomic_add(v_colors, gid, c, g[_COLOR + c])
-                        if wp.static(DEPTH == 1):
-                            wp.atomic_add(v_depths, gid, g[_COLOR + C])
+                    scatter(g, v_gaussians, gid)
 
     tag = (f"c{C}_t{TS}_b{B}_{'coop' if COOP else 'direct'}_{'depth' if with_depth else 'nodepth'}"
            f"_{color_storage}{'_fast' if fast_math else ''}{'_warpwalk' if warp_walk else ''}"

@@ -61,9 +61,12 @@ class _Captured:
             self.host_count = torch.empty(1, dtype=torch.int64, pin_memory=True)
             self.host_flags = torch.empty(len(inputs) + 1, dtype=torch.bool, pin_memory=True)
         self.zeroed_outputs = [self.plan.w[k] for k in ("means2d", "conics", "depths", "opac_out")]
-        # Gradients the backward accumulates into, zeroed by each replay.
-        self.zeroed_grads = [a.grad for a in self.plan.w.values() if isinstance(a, wp.array) and a.grad is not None]
-        self.zeroed_grads.append(self.plan.w["colors_grad"])
+        # Gradients the backward accumulates into, zeroed by each replay: the inputs' (the projection's
+        # adjoint adds to them), the blending backward's table and the background's. The projection's
+        # outputs' gradients and the colours' are overwritten from the table.
+        w = self.plan.w
+        self.zeroed_grads = [w[k].grad for k in ("means", "quats", "scales", "opacities", "background")]
+        self.zeroed_grads.append(w["gaussian_grads"])
         # Where each backward copies the output gradients (dL/d image, alpha, depth) for its graph.
         self.cotangents = [torch.zeros_like(self.plan.out[k]) for k in ("image", "alpha", "depth")]
         self.w_cotangents = [wp.from_torch(t, dtype=wp.float32) for t in self.cotangents]

@@ -15,7 +15,8 @@ import torch
 import warp as wp
 
 from .kernels import binning
-from .kernels.blend import CPU_BATCH, backward_threads, batch_size, blend_kernels, check_backward_pixels
+from .kernels.blend import (CPU_BATCH, backward_threads, batch_size, blend_kernels, check_backward_pixels,
+                            gradient_width, unpack_gradients_kernel)
 from .kernels.records import COLOR_STORAGES, record_width
 from .kernels.projection import RADIUS_RULES, projection_kernel
 from .warp_scope import WarpScope
@@ -422,6 +423,9 @@ class RenderPlan:
                 "depth_bits": wp.from_torch(o["depths"].view(torch.int32), dtype=wp.int32),
                 # Allocated by torch, like every buffer here: in order on torch's stream.
                 "ranges": _wp(torch.empty(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
+                # The blending backward's per-Gaussian gradients, one row each (kernels/blend.py).
+                "gaussian_grads": _wp(torch.zeros(n, gradient_width(c, opts.render_depth is not None), **f32),
+                                      wp.float32) if g else None,
             }
             w_out["records"] = None
             if packed:
@@ -449,6 +453,7 @@ class RenderPlan:
         self._bwd_threads = backward_threads(opts.tile_size, opts.backward_pixels)
         self._bwd_block = min(opts.block(opts.backward_block), self._bwd_threads)
         self._blend = blend_kernels_for(opts, c, with_depth, cooperative)
+        self._unpack = unpack_gradients_kernel(c, with_depth)
 
     def scoped(self):
         """Device and stream scope of this plan's launches (torch's current stream on CUDA)."""
@@ -517,8 +522,9 @@ class RenderPlan:
         w = self.w
         wp.launch(self._blend[1], dim=(self.n_tiles, self._bwd_threads), block_dim=self._bwd_block,
                   inputs=self._blend_args() + [w["transmittance"], w["last"], *cotangents],
-                  outputs=[w["means2d"].grad, w["conics"].grad, w["opac_out"].grad, w["colors_grad"],
-                           w["depths"].grad, w["background"].grad])
+                  outputs=[w["gaussian_grads"], w["background"].grad])
+        wp.launch(self._unpack, dim=self.n, inputs=[w["gaussian_grads"]],
+                  outputs=[w["means2d"].grad, w["conics"].grad, w["opac_out"].grad, w["colors_grad"], w["depths"].grad])
         # Warp's generated adjoint of the projection, launched as wp.Tape would launch it.
         adjoints = {key: [a.grad if isinstance(a, wp.array) else None for a in self._projection[key]]
                     for key in ("inputs", "outputs")}

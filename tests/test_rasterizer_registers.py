@@ -50,6 +50,14 @@ def test_register_cap_reaches_the_compiled_backward(pixels, cap):
     assert free["frame_bytes"] == 0 and capped["frame_bytes"] <= 64
 
 
+@nvrtc
+@pytest.mark.parametrize("channels,depth", [(1, False), (3, False), (26, True)])
+def test_gradient_scatter_compiles_for_every_row_width(channels, depth):
+    # Rows of 7, 9 and 33 words: padded to 8 and 16 values, and split into chunks of 32 and 1.
+    kernel = blend_kernels(channels, 16, depth, 256, True, "float32", True, packed=True, backward_pixels=2)[1]
+    assert kernel_resources(kernel)["registers"] > 0
+
+
 def test_cap_is_validated():
     assert RasterOptions(backward_max_registers=64).backward_max_registers == 64
     for bad in (16, 256, -1):
