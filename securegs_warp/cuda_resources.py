@@ -2,7 +2,8 @@
 cubin that NVRTC produces: no GPU is needed (Warp compiles ahead of time with ``compile_aot_module``).
 
 ``kernel_barriers`` counts the block barriers in the kernel's PTX, in all and in its innermost loop
-that holds any (the blending kernels' walk over batches of Gaussians).
+that holds any (the blending kernels' walk over batches of Gaussians); ``ptx_warp_traffic`` its warp
+shuffles and global atomics.
 
 Occupancy follows from the registers: an H100 multiprocessor holds 65,536 registers, allocated per
 warp in multiples of 256 (8 per thread), so blocks of 256 threads fit 2 per multiprocessor at 81–128
@@ -107,10 +108,22 @@ def ptx_barriers(ptx: str) -> dict[str, int]:
     return {"barriers": len(barriers), "loop_barriers": innermost[leaves[0]] if leaves else 0}
 
 
-def kernel_barriers(kernel, arch: int = 90) -> dict[str, int]:
-    """``ptx_barriers`` of ``kernel`` (alone in its module) compiled to PTX for sm_``arch`` (NVRTC,
-    no GPU)."""
+def ptx_warp_traffic(ptx: str) -> dict[str, int]:
+    """{"shuffles": warp shuffle instructions (``shfl.sync``), "atomics": global-memory atomic
+    instructions (``atom.global``, ``red.global``)} in a PTX listing: what a warp-level reduction
+    and its gradient scatter cost in instructions (each may serve several lanes at once)."""
+    return {"shuffles": len(re.findall(r"\bshfl\.sync\b", ptx)),
+            "atomics": len(re.findall(r"\b(?:atom|red)\.global\b", ptx))}
+
+
+def kernel_ptx(kernel, arch: int = 90) -> str:
+    """The PTX of ``kernel`` (alone in its module) compiled for sm_``arch`` (NVRTC, no GPU)."""
     with tempfile.TemporaryDirectory() as folder:
         paths = wp.compile_aot_module(kernel.module, device=None, arch=arch, module_dir=folder, use_ptx=True)
         with open(paths[0], encoding="utf-8", errors="replace") as f:
-            return ptx_barriers(f.read())
+            return f.read()
+
+
+def kernel_barriers(kernel, arch: int = 90) -> dict[str, int]:
+    """``ptx_barriers`` of ``kernel`` (alone in its module) compiled to PTX for sm_``arch``."""
+    return ptx_barriers(kernel_ptx(kernel, arch))

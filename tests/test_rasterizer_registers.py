@@ -4,7 +4,8 @@ claims to. Skipped where Warp was built without NVRTC for sm_90."""
 import pytest
 import warp as wp
 
-from securegs_warp.cuda_resources import cubin_resources, kernel_barriers, kernel_resources, ptx_barriers
+from securegs_warp.cuda_resources import (cubin_resources, kernel_barriers, kernel_resources, ptx_barriers,
+                                          ptx_warp_traffic)
 from securegs_warp.kernels.blend import blend_kernels
 from securegs_warp.rasterizer import RasterOptions
 
@@ -38,6 +39,13 @@ def test_ptx_barrier_counter_finds_the_innermost_loop():
     assert ptx_barriers(ptx) == {"barriers": 4, "loop_barriers": 2}
     with pytest.raises(ValueError, match="separate loops"):
         ptx_barriers("$L__A:\nbar.sync 0;\n@%p1 bra $L__A;\n$L__B:\nbar.sync 0;\n@%p1 bra $L__B;")
+
+
+def test_ptx_warp_traffic_counts_shuffles_and_global_atomics():
+    ptx = "\n".join(["shfl.sync.bfly.b32 %r2|%p1, %r1, 16, 31, -1;", "shfl.sync.idx.b32 %r3, %r1, 0, 31, -1;",
+                     "atom.global.add.f32 %f1, [%rd1], %f2;", "red.global.add.f32 [%rd2], %f3;",
+                     "atom.shared.add.u32 %r4, [%r5], 1;", "ld.global.f32 %f4, [%rd3];"])
+    assert ptx_warp_traffic(ptx) == {"shuffles": 2, "atomics": 2}
 
 
 @nvrtc
