@@ -1,18 +1,23 @@
 """Tile binning: which Gaussians touch which image tile, sorted front to back within each tile.
 
 Pipeline (driven by ``securegs_warp.rasterizer``):
-1. ``count_tiles``: tiles covered by each Gaussian's screen rectangle (int64: 3M Gaussians times
-   dozens of tiles overflows int32); with ``exact`` only the tiles of that rectangle that the
-   Gaussian's ellipse at the alpha threshold reaches (``reaches_tile``, Speedy-Splat's AccuTile):
-   a thin diagonal Gaussian touches a band of tiles, not its whole bounding square. The answers
-   for a rectangle of up to MASK_TILES tiles are kept as a bit mask, so step 3 does not test again.
-2. inclusive prefix sum of the counts (``wp.utils.array_scan``): its last entry is the total, read
-   on the host (the render's one synchronisation); each Gaussian writes at ``ends[i] - counts[i]``.
-3. ``emit_intersections``: one 64-bit key per (Gaussian, tile): tile id in the high 32 bits, the
-   float32 depth's bit pattern zero-extended in the low 32 (depths are > 0, so their bit patterns
-   sort like the values; sign extension would corrupt the tile id).
-4. ``wp.utils.radix_sort_pairs`` on the keys (stable, so equal depths keep Gaussian order).
-5. ``tile_ranges``: [start, end) of each tile's run in the sorted list.
+1. ``depth_order_keys``, then ``wp.utils.radix_sort_pairs`` on 32-bit keys: the Gaussians in depth
+   order (``order``; the float32 depth's bit pattern as the key: depths are > 0, so their bit
+   patterns sort like the values; culled Gaussians, depth 0, come first and bin nowhere).
+2. ``count_tiles``, the j-th thread for Gaussian ``order[j]``: tiles covered by its screen rectangle
+   (int64: 3M Gaussians times dozens of tiles overflows int32); with ``exact`` only the tiles of that
+   rectangle that the Gaussian's ellipse at the alpha threshold reaches (``reaches_tile``,
+   Speedy-Splat's AccuTile): a thin diagonal Gaussian touches a band of tiles, not its whole
+   bounding square. The answers for a rectangle of up to MASK_TILES tiles are kept as a bit mask,
+   so step 4 does not test again.
+3. inclusive prefix sum of the counts in depth order (``wp.utils.array_scan``): its last entry is the
+   total, read on the host (the render's one synchronisation); the j-th writes at ``ends[j] - counts[j]``.
+4. ``emit_intersections``: one 32-bit key per (Gaussian, tile), the tile id, in depth order.
+5. ``wp.utils.radix_sort_pairs`` on the tile ids' bits only. It is stable, so each tile's run keeps
+   the depth order (equal depths in Gaussian order, as step 1 is stable too): the same lists as one
+   sort of 64-bit (tile, depth) keys, for a sort of N 32-bit keys and one of M keys of a few passes
+   instead of one of M 64-bit keys over 32 + tile bits.
+6. ``tile_ranges``: [start, end) of each tile's run in the sorted list.
 
 A captured render (``RasterOptions.capture``) cannot read the count on the host: it sorts a fixed
 capacity whose unused keys hold a padding tile id (one past the last tile), which sorts last.
@@ -136,7 +141,17 @@ def masked(rect: wp.vec4i) -> bool:
 
 
 @wp.kernel
+def depth_order_keys(depth_bits: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int32),
+                     order: wp.array(dtype=wp.int32)):
+    """keys[i] = Gaussian i's depth bits, order[i] = i: the inputs of the depth sort."""
+    i = wp.tid()
+    keys[i] = depth_bits[i]
+    order[i] = i
+
+
+@wp.kernel
 def count_tiles(
+    order: wp.array(dtype=wp.int32),
     means2d: wp.array(dtype=wp.vec2),
     radii: wp.array(dtype=wp.vec2i),
     conics: wp.array(dtype=wp.vec3),
@@ -149,9 +164,10 @@ def count_tiles(
     counts: wp.array(dtype=wp.int64),
     masks: wp.array(dtype=wp.int64),
 ):
-    """counts[i]: the tiles Gaussian i is binned to; with ``exact``, masks[i]: which tiles of its
-    rectangle (bit (ty − y0)·width + (tx − x0)) where ``masked`` keeps them, else 0."""
-    i = wp.tid()
+    """counts[j]: the tiles Gaussian i = order[j] is binned to; with ``exact``, masks[i]: which tiles
+    of its rectangle (bit (ty − y0)·width + (tx − x0)) where ``masked`` keeps them, else 0."""
+    j = wp.tid()
+    i = order[j]
     r = radii[i]
     n = wp.int64(0)
     if r[0] > 0 and r[1] > 0:
@@ -173,18 +189,18 @@ def count_tiles(
             masks[i] = mask
         else:
             n = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
-    counts[i] = n
+    counts[j] = n
 
 
 @wp.kernel
 def emit_intersections(
+    order: wp.array(dtype=wp.int32),
     means2d: wp.array(dtype=wp.vec2),
     radii: wp.array(dtype=wp.vec2i),
     conics: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
     alpha_min: float,
     exact: int,
-    depth_bits: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int64),
     ends: wp.array(dtype=wp.int64),
     masks: wp.array(dtype=wp.int64),
@@ -192,15 +208,16 @@ def emit_intersections(
     tiles_x: int,
     tiles_y: int,
     capacity: wp.int64,
-    keys: wp.array(dtype=wp.int64),
+    keys: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.int32),
 ):
-    i = wp.tid()
+    """Gaussian i = order[j]'s (tile id, i) pairs at ``ends[j] - counts[j]`` on (see ``count_tiles``)."""
+    j = wp.tid()
+    i = order[j]
     r = radii[i]
-    if r[0] > 0 and r[1] > 0 and counts[i] > wp.int64(0):
+    if r[0] > 0 and r[1] > 0 and counts[j] > wp.int64(0):
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
-        low = wp.int64(depth_bits[i]) & wp.int64(0xFFFFFFFF)
-        k = ends[i] - counts[i]
+        k = ends[j] - counts[j]
         from_mask = exact != 0 and masked(rect)
         mask = wp.int64(0)
         e = Ellipse()
@@ -220,23 +237,23 @@ def emit_intersections(
                 if hit:
                     # A render with a fixed capacity drops what does not fit (and reports it).
                     if k < capacity:
-                        keys[k] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | low
+                        keys[k] = ty * tiles_x + tx
                         values[k] = i
                     k += wp.int64(1)
 
 
 @wp.kernel
-def tile_ranges(keys: wp.array(dtype=wp.int64), count: int, ranges: wp.array2d(dtype=wp.int32)):
+def tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array2d(dtype=wp.int32)):
     """ranges[t] = [start, end) in the sorted list; tiles without Gaussians stay [0, 0).
 
     Start and end of one tile are written by different threads, hence one int per slot. Keys with a
     tile id past the last tile are the padding of a fixed-capacity list (they sort last) and skipped.
     """
     i = wp.tid()
-    tile = int(keys[i] >> wp.int64(32))
+    tile = keys[i]
     if tile >= ranges.shape[0]:
         return
-    if i == 0 or int(keys[i - 1] >> wp.int64(32)) != tile:
+    if i == 0 or keys[i - 1] != tile:
         ranges[tile, 0] = i
-    if i == count - 1 or int(keys[i + 1] >> wp.int64(32)) != tile:
+    if i == count - 1 or keys[i + 1] != tile:
         ranges[tile, 1] = i + 1

@@ -386,6 +386,9 @@ class RenderPlan:
                     "depths": torch.zeros(n, **f32), "opacities": torch.zeros(n, **f32)}
         self.transmittance = torch.empty(height, width, **f32)
         self.last = torch.empty(height, width, device=tdev, dtype=torch.int32)
+        # The depth sort's keys and values (Gaussian ids in depth order), twice N as the sort needs.
+        self.depth_keys = torch.empty(max(2 * n, 2), device=tdev, dtype=torch.int32)
+        self.order = torch.empty(max(2 * n, 2), device=tdev, dtype=torch.int32)
         self.counts = torch.empty(n, device=tdev, dtype=torch.int64)
         self.ends = torch.empty(n, device=tdev, dtype=torch.int64)
         self.tile_masks = torch.empty(n, device=tdev, dtype=torch.int64)
@@ -417,6 +420,8 @@ class RenderPlan:
                 "depth": _wp(o["depth"], wp.float32),
                 "transmittance": _wp(self.transmittance, wp.float32),
                 "last": _wp(self.last, wp.int32),
+                "depth_keys": _wp(self.depth_keys, wp.int32),
+                "order": _wp(self.order, wp.int32),
                 "counts": _wp(self.counts, wp.int64),
                 "ends": _wp(self.ends, wp.int64),
                 "tile_masks": _wp(self.tile_masks, wp.int64),
@@ -460,14 +465,18 @@ class RenderPlan:
         return WarpScope(self.device, self.out["image"].device)
 
     def project_and_count(self) -> None:
-        """Projection and the per-Gaussian tile counts with their inclusive prefix sum:
-        ``self.ends[-1]`` is the number of intersections."""
+        """Projection, the Gaussians' depth order, and their tile counts in that order with the
+        inclusive prefix sum: ``self.ends[-1]`` is the number of intersections."""
         w, opts = self.w, self.opts
         wp.launch(**self._projection)
         if self.n == 0:
             return
+        wp.launch(binning.depth_order_keys, dim=self.n, inputs=[w["depth_bits"]], outputs=[w["depth_keys"], w["order"]])
+        # Depths are >= 0, so their bit patterns' sign bit is clear.
+        wp.utils.radix_sort_pairs(w["depth_keys"], w["order"], self.n, end_bit=31)
         wp.launch(binning.count_tiles, dim=self.n,
-                  inputs=[w["means2d"], w["radii"], *self._overlap(), opts.tile_size, self.tiles_x, self.tiles_y],
+                  inputs=[w["order"], w["means2d"], w["radii"], *self._overlap(), opts.tile_size, self.tiles_x,
+                          self.tiles_y],
                   outputs=[w["counts"], w["tile_masks"]])
         wp.utils.array_scan(w["counts"], w["ends"], inclusive=True)
 
@@ -483,7 +492,7 @@ class RenderPlan:
                              "fewer Gaussians or a smaller image at once")
         self.capacity = capacity
         tdev = self.out["image"].device
-        self.keys = _wp(torch.empty(max(2 * capacity, 2), device=tdev, dtype=torch.int64), wp.int64)
+        self.keys = _wp(torch.empty(max(2 * capacity, 2), device=tdev, dtype=torch.int32), wp.int32)
         self.values = _wp(torch.empty(max(2 * capacity, 2), device=tdev, dtype=torch.int32), wp.int32)
 
     def sort_intersections(self, count: int, padded: bool) -> None:
@@ -496,12 +505,12 @@ class RenderPlan:
         # The padding tile id must fit the sorted bits: tile ids 0 .. n_tiles.
         tile_bits = max(1, int(self.n_tiles).bit_length())
         if padded:
-            self.keys.fill_(self.n_tiles << 32)
+            self.keys.fill_(self.n_tiles)
         wp.launch(binning.emit_intersections, dim=self.n,
-                  inputs=[w["means2d"], w["radii"], *self._overlap(), w["depth_bits"], w["counts"], w["ends"],
+                  inputs=[w["order"], w["means2d"], w["radii"], *self._overlap(), w["counts"], w["ends"],
                           w["tile_masks"], opts.tile_size, self.tiles_x, self.tiles_y, self.capacity],
                   outputs=[self.keys, self.values])
-        wp.utils.radix_sort_pairs(self.keys, self.values, count, end_bit=32 + tile_bits)
+        wp.utils.radix_sort_pairs(self.keys, self.values, count, end_bit=tile_bits)
         wp.launch(binning.tile_ranges, dim=count, inputs=[self.keys, count], outputs=[w["ranges"]])
 
     def _blend_args(self):

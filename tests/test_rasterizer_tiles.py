@@ -4,8 +4,10 @@ import math
 
 import pytest
 import torch
+import warp as wp
 
 from securegs_warp import rasterize
+from securegs_warp.rasterizer import RasterOptions, RenderPlan
 from securegs_warp.raster_cases import (
     TEST_DEVICE, assert_matches_reference, hard_scene, random_scene, render_with_grads,
 )
@@ -96,3 +98,29 @@ def test_needles_past_the_tile_mask_bin_as_those_within_it():
     assert (tiles < MASK_TILES / 2).any() and (tiles > 2 * MASK_TILES).any()
     assert torch.equal(ellipse[0], rectangle[0]) and torch.equal(ellipse[1], rectangle[1])
     assert ellipse[2]["n_intersections"] <= 0.6 * rectangle[2]["n_intersections"]
+
+
+def test_each_tiles_list_runs_front_to_back_with_ties_in_gaussian_order():
+    # The lists come from two stable sorts (the Gaussians by depth, then the intersections by tile
+    # id): they must be those of one sort of (tile, depth, Gaussian) keys. Four depths only, so that
+    # most neighbours in a tile's list tie.
+    scene = random_scene(5, n=150, width=48, height=40)
+    g = torch.Generator().manual_seed(5)
+    scene.means[:, 2] = 3.0 + torch.randint(0, 4, (150,), generator=g).float() * 0.5
+    inputs = {name: getattr(scene, name).to(TEST_DEVICE).float().contiguous()
+              for name in ("means", "quats", "scales", "opacities", "colors", "background")}
+    inputs.update(color_table=inputs["colors"], viewmat=scene.viewmat.to(TEST_DEVICE).reshape(16),
+                  K=scene.K.to(TEST_DEVICE).reshape(9))
+    plan = RenderPlan(inputs, scene.width, scene.height, RasterOptions(tile_size=8), with_grads=False)
+    with plan.scoped():
+        plan.project_and_count()
+        count = int(plan.ends[-1])
+        plan.allocate_intersections(count)
+        plan.sort_intersections(count, padded=False)
+    tiles = wp.to_torch(plan.keys)[:count].long().cpu()
+    ids = wp.to_torch(plan.values)[:count].long().cpu()
+    depths = plan.out["depths"].cpu()[ids]
+    order = sorted(range(count), key=lambda k: (int(tiles[k]), float(depths[k]), int(ids[k])))
+    assert order == list(range(count))
+    same_tile = tiles[1:] == tiles[:-1]
+    assert int((same_tile & (depths[1:] == depths[:-1])).sum()) > 10  # ties were there to order
