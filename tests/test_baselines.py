@@ -1,4 +1,5 @@
 """The paper's baselines: 3DGS + StegaNeRF, attacks on explicit Gaussians, and the method comparison."""
+import dataclasses
 import json
 import math
 
@@ -221,3 +222,24 @@ def test_comparison_refuses_bad_method_lists_before_training(scene):
     with pytest.raises(ValueError, match="list 3dgs before it"):
         run_all(setup, ("scaffold", "steganerf", "3dgs"), on_row=trained.append)
     assert trained == []
+
+
+def test_opacity_reset_survives_a_skipped_step(scene):
+    # A step with a non-finite gradient skips its update and its gradient-driven densification, but
+    # the schedule's opacity reset at that step still happens.
+    trainer = GaussianTrainer(scene, TrainConfig(iterations=10, raster=CPU_RASTER, model="3dgs"))
+    trainer.strategy = dataclasses.replace(trainer.strategy, refine_start=10, refine_stop=10, reset_every=2)
+    trainer.step()
+    with torch.no_grad():
+        trainer.model.opacity_logits.fill_(5.0)
+
+    def poison(grad):
+        grad = grad.clone()
+        grad[0] = float("nan")
+        return grad
+    handle = trainer.model.means.register_hook(poison)
+    stats = trainer.step()
+    handle.remove()
+    assert stats["nonfinite_grads"] == 3 and stats["opacity_reset"]  # the row of one mean
+    ceiling = 2.0 * trainer.strategy.prune_opa
+    assert float(torch.sigmoid(trainer.model.opacity_logits).max()) <= ceiling * (1 + 1e-5)

@@ -82,10 +82,15 @@ class GaussianStrategy:
         changed = {}
         if step > self.refine_start and step % self.refine_every == 0:
             changed = self.refine(model, optimizer, state, step, generator)
-        if step % self.reset_every == 0:
+        return {**changed, **self.scheduled(model, optimizer, step)}
+
+    def scheduled(self, model, optimizer, step: int) -> dict:
+        """What step ``step`` does whatever its gradients (the opacity reset); the trainers call it
+        alone for a step whose update was skipped, so a reset is not lost with it."""
+        if step < self.refine_stop and step % self.reset_every == 0:
             self.reset_opacity(model, optimizer)
-            changed["opacity_reset"] = True
-        return changed
+            return {"opacity_reset": True}
+        return {}
 
     @torch.no_grad()
     def refine(self, model, optimizer, state, step: int, generator=None) -> dict:

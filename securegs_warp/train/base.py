@@ -65,6 +65,11 @@ class ViewTrainer:
         """Run the strategy's hook after backward; returns what changed."""
         raise NotImplementedError
 
+    def densify_skipped(self, step: int) -> dict:
+        """For a step whose update was skipped: what its strategy does at that step whatever the
+        gradients (3DGS's opacity reset; Scaffold-GS's steps all read gradient statistics)."""
+        return {}
+
     def size_stats(self) -> dict:
         """The model's size as reported each step ({"anchors": N} or {"gaussians": N})."""
         raise NotImplementedError
@@ -173,7 +178,10 @@ class ViewTrainer:
             self.optimizer.step()
             self.after_update()
 
-        extra = evaluated({**extra, **self.checked_update(self.optimizer, renders, update)})
+        skipped = self.checked_update(self.optimizer, renders, update)
+        if skipped and self.config.densify:
+            changed = self.densify_skipped(step)
+        extra = evaluated({**extra, **skipped})
         return {"loss": loss.item(), "psnr": psnr(out["image"].detach(), target), **self.size_stats(),
                 **extra, **changed}
 

@@ -70,6 +70,9 @@ class GaussianTrainer(ViewTrainer):
         return self.strategy.step_post_backward(self.model, self.optimizer, self.strategy_state, step, branches,
                                                 generator=self.generator)
 
+    def densify_skipped(self, step: int) -> dict:
+        return self.strategy.scheduled(self.model, self.optimizer, step)
+
     def size_stats(self) -> dict:
         return {"gaussians": self.model.num_gaussians}
 
