@@ -36,7 +36,7 @@ from typing import Any
 
 import warp as wp
 
-from .records import (COLOR_STORAGES, R_COLOR, R_DEPTH, colors_in_record, record_geometry, record_width,
+from .records import (COLOR_STORAGES, R_COLOR, R_DEPTH, colors_in_record, outside_box, record_geometry, record_width,
                       record_word)
 
 
@@ -72,6 +72,18 @@ def warp_max(x: int) -> int:
 def block_barrier():
     """Wait for every thread of the block (CUDA ``__syncthreads``; Warp's CPU blocks likewise)."""
     ...
+
+
+@wp.func
+def warp_band(tile_x0: int, tile_y0: int, tile_size: int, lane: int, pixels: int) -> wp.vec4:
+    """(x_lo, x_hi, y_lo, y_hi): the pixel centres of the CUDA warp that holds thread ``lane`` of a
+    tile whose top-left pixel is (tile_x0, tile_y0), when thread t walks ``pixels`` rows from row
+    (t // tile_size)·pixels of column t % tile_size. 32 lanes span whole rows of a tile of 8, 16 or
+    32. On the CPU a thread is its own warp, and this band holds its pixels too."""
+    w0 = lane - lane % 32
+    return wp.vec4(float(tile_x0) + 0.5, float(tile_x0 + tile_size) - 0.5,
+                   float(tile_y0 + (w0 // tile_size) * pixels) + 0.5,
+                   float(tile_y0 + ((w0 + 31) // tile_size) * pixels + pixels) - 0.5)
 
 
 # Gradient vector layout per Gaussian: [d mean2d (2), d conic (3), d opacity (1), d colour (C), d depth],
@@ -299,6 +311,8 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         fy = float(py) + 0.5
         start = ranges[tile, 0]
         end = ranges[tile, 1]
+        # Packed records carry each Gaussian's blending box: one a warp's pixels all miss is skipped.
+        band = warp_band((tile - ty * tiles_x) * TS, ty * TS, TS, lane, 1)
 
         T = float(1.0)
         acc = ColorVec()
@@ -342,6 +356,8 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         gid = sorted_ids[b0 + j]
                         row = gid
                     if wp.static(PACKED):
+                        if outside_box(rec, row, band[0], band[1], band[2], band[3]):
+                            continue
                         xy, cn, op = record_geometry(rec, row)
                     elif wp.static(COOP):
                         xy = xy_t[j]
@@ -419,6 +435,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         fx = float(px) + 0.5
         start = ranges[tile, 0]
         leader = lane % wp.block_dim() == 0
+        band = warp_band((tile - ty * tiles_x) * TS, ty * TS, TS, lane, PX)
 
         # Per-pixel state, pixel p at [p] (and colour c at [p·C + c]).
         fy = PixVec()
@@ -498,6 +515,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 else:
                     gid = sorted_ids[b0 + j]
                     row = gid
+                if wp.static(PACKED):
+                    # Warp-uniform: the whole warp skips together, before its vote.
+                    if outside_box(rec, row, band[0], band[1], band[2], band[3]):
+                        continue
                 if b0 + j <= last_max:
                     # The geometry, read once for the thread's pixels; colours and depth only where a
                     # pixel blends the Gaussian.

@@ -17,7 +17,8 @@ import functools
 
 import warp as wp
 
-from .records import COLOR_STORAGES, R_COLOR, R_CONIC, R_DEPTH, R_OPACITY, R_XY, colors_in_record, record_width
+from .records import (COLOR_STORAGES, R_BOX, R_COLOR, R_CONIC, R_DEPTH, R_OPACITY, R_XY, blend_box, colors_in_record,
+                      record_width)
 
 # Radius rules (compile-time): how far from its centre a 2D Gaussian is allowed to reach.
 RADIUS_RULES = ("opacity_aware", "3sigma")
@@ -71,7 +72,7 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
 
     @wp.func
     def write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int, xy: wp.vec2,
-                     conic: wp.vec3, opacity: float, depth: float):
+                     conic: wp.vec3, opacity: float, depth: float, alpha_min: float):
         """Row i of ``records``: zero-initialised (the padding is gathered with the rest of the
         row), stored as whole vec4s (word by word, a thread's stores are 4 bytes at the row's stride)."""
         r = Row()
@@ -82,6 +83,9 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
         r[R_CONIC + 2] = conic[2]
         r[R_OPACITY] = opacity
         r[R_DEPTH] = depth
+        box = blend_box(xy, conic, opacity, alpha_min)
+        r[R_BOX] = box[0]
+        r[R_BOX + 1] = box[1]
         if wp.static(WITH_COLORS):
             for c in range(C):
                 r[R_COLOR + c] = float(colors[i, c])
@@ -92,12 +96,12 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
     # when it replays the forward: both are no-ops, so the record costs the backward nothing.
     @wp.func_grad(write_record)
     def adj_write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int,
-                         xy: wp.vec2, conic: wp.vec3, opacity: float, depth: float):
+                         xy: wp.vec2, conic: wp.vec3, opacity: float, depth: float, alpha_min: float):
         pass
 
     @wp.func_replay(write_record)
     def replay_write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int,
-                            xy: wp.vec2, conic: wp.vec3, opacity: float, depth: float):
+                            xy: wp.vec2, conic: wp.vec3, opacity: float, depth: float, alpha_min: float):
         pass
 
     def project(
@@ -223,7 +227,7 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
                 depths[i] = z
                 opacities_out[i] = opacity
                 if wp.static(PACK):
-                    write_record(records, colors, i, wp.vec2(u, v), conic, opacity, z)
+                    write_record(records, colors, i, wp.vec2(u, v), conic, opacity, z, alpha_min)
         if rx > 0.0:
             radii[i] = wp.vec2i(int(rx), int(ry))
         else:
