@@ -311,8 +311,6 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         fy = float(py) + 0.5
         start = ranges[tile, 0]
         end = ranges[tile, 1]
-        # Packed records carry each Gaussian's blending box: one a warp's pixels all miss is skipped.
-        band = warp_band((tile - ty * tiles_x) * TS, ty * TS, TS, lane, 1)
 
         T = float(1.0)
         acc = ColorVec()
@@ -356,8 +354,6 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                         gid = sorted_ids[b0 + j]
                         row = gid
                     if wp.static(PACKED):
-                        if outside_box(rec, row, band[0], band[1], band[2], band[3]):
-                            continue
                         xy, cn, op = record_geometry(rec, row)
                     elif wp.static(COOP):
                         xy = xy_t[j]
@@ -516,7 +512,10 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                     gid = sorted_ids[b0 + j]
                     row = gid
                 if wp.static(PACKED):
-                    # Warp-uniform: the whole warp skips together, before its vote.
+                    # A Gaussian whose blending box the warp's pixels all miss adds nothing to them.
+                    # Warp-uniform: the whole warp skips together, before its vote. (The forward does
+                    # not test the box: its work per Gaussian is short, and with the test it measured
+                    # slower; docs/results.md, "Blending boxes".)
                     if outside_box(rec, row, band[0], band[1], band[2], band[3]):
                         continue
                 if b0 + j <= last_max:

@@ -12,7 +12,7 @@ import warp as wp
 COLOR_STORAGES = {"float32": wp.float32, "float16": wp.float16}
 
 # A record's float32 words: x, y, conic a, b, c, opacity, depth, the half-widths of its blending box
-# (``blend_box``), then its colours when they are float32, padded to a multiple of 4 words so that
+# (``blend_box``; in the RGB record they fill what was padding), then its colours when they are float32, padded to a multiple of 4 words so that
 # rows are 16-byte aligned. float16 colours stay in their own [N, C] table (a second indexed load per
 # batch): widened into the float32 record they would take twice the bytes, which float16 storage
 # exists to save.
@@ -63,8 +63,8 @@ def blend_box(xy: wp.vec2, conic: wp.vec3, opacity: float, alpha_min: float) -> 
     """Half-widths (x, y) of a box around ``xy`` outside which no pixel centre passes the blending
     kernels' test o·e^(−σ) >= alpha_min as they evaluate it in float32: the axis-aligned box of the
     ellipse σ = ln(o / alpha_min) of the conic as stored, its threshold widened by the rounding error
-    of σ (which grows with the conic's condition number), and a little more in pixels. The kernels
-    skip a Gaussian for a whole warp whose pixels all lie outside it (same image, same gradients).
+    of σ (which grows with the conic's condition number), and a little more in pixels. The blending
+    backward skips a Gaussian for a whole warp whose pixels all lie outside it (same gradients).
     ``NO_BOX`` where the rounding cannot be bounded; negative where no pixel can pass (o < alpha_min)."""
     a = wp.float64(conic[0])
     b = wp.float64(conic[1])

@@ -1,6 +1,6 @@
-"""Blending boxes (kernels/records.py ``blend_box``): the blending kernels skip, for a whole warp, a
+"""Blending boxes (kernels/records.py ``blend_box``): the blending backward skips, for a whole warp, a
 Gaussian whose box its pixels all miss. The box must hold every pixel centre that passes the
-kernels' float32 test o·e^(−σ) >= alpha_min, or a render would lose a contribution; and it must be
+kernels' float32 test o·e^(−σ) >= alpha_min, or a gradient would lose a contribution; and it must be
 tight enough to skip something. Skipping changes nothing: packed renders (which skip) equal
 per-field renders (which cannot) bit for bit."""
 import math
