@@ -109,12 +109,14 @@ class RasterOptions:
     backward_pixels: int = 2
     # How the blending kernels gather each batch of Gaussians: one indexed load per field (means2d,
     # conics, opacities, colours, depths: "fields"), or one of a per-Gaussian record that the
-    # projection writes beside its outputs ("packed": x, y, conic, opacity, depth and float32 colours in
-    # one 16-byte-aligned float32 row; float16 colours keep their own table). On CUDA each indexed
-    # load into shared memory ends in a block barrier, so "packed" pays one global-memory latency
-    # per batch where "fields" pays four or five (scripts/kernel_registers.py counts the barriers),
-    # for N × 12 float32 words more memory (RGB; 4·⌈(7+C)/4⌉ for C float32 colours, 8 with float16
-    # colours). Bit-identical images and gradients on the CPU; on CUDA the
+    # projection writes beside its outputs ("packed": x, y, conic, opacity, depth, the blending box
+    # and float32 colours in one 16-byte-aligned float32 row; float16 colours keep their own table).
+    # On CUDA each indexed load into shared memory ends in a block barrier, so "packed" pays one
+    # global-memory latency per batch where "fields" pays four or five (scripts/kernel_registers.py
+    # counts the barriers), for N × 12 float32 words more memory (RGB; 4·⌈(9+C)/4⌉ for C float32
+    # colours, 12 with float16 colours). Only "packed" carries the blending box with which the
+    # backward skips, a warp at a time, the Gaussians its pixels all miss (kernels/records.py,
+    # blend_box). Bit-identical images and gradients on the CPU; on CUDA the
     # gradients' atomic sums add in a varying order for either gather, so the two agree to float
     # rounding. scripts/bench_rasterizer.py --variant fields:gather=fields compares them. "packed" by default:
     # faster in both blending kernels on an H100 (docs/results.md, "Packed Gaussian records").
