@@ -65,7 +65,8 @@ def blend_box(xy: wp.vec2, conic: wp.vec3, opacity: float, alpha_min: float) -> 
     ellipse σ = ln(o / alpha_min) of the conic as stored, its threshold widened by the rounding error
     of σ (which grows with the conic's condition number), and a little more in pixels. The blending
     backward skips a Gaussian for a whole warp whose pixels all lie outside it (same gradients).
-    ``NO_BOX`` where the rounding cannot be bounded; negative where no pixel can pass (o < alpha_min)."""
+    ``NO_BOX`` where the rounding cannot be bounded; negative where no pixel can pass (o below
+    alpha_min by more than the slack)."""
     a = wp.float64(conic[0])
     b = wp.float64(conic[1])
     c = wp.float64(conic[2])
@@ -73,14 +74,16 @@ def blend_box(xy: wp.vec2, conic: wp.vec3, opacity: float, alpha_min: float) -> 
     half_trace = wp.float64(0.5) * (a + c)
     root = wp.sqrt(wp.max(wp.float64(0.25) * (a - c) * (a - c) + b * b, wp.float64(0.0)))
     low = half_trace - root
+    # The threshold with its slack: below 0 no pixel passes (the slack also covers an exp that
+    # rounds e^0 above 1 for an opacity a rounding error below alpha_min).
+    threshold = wp.log(wp.float64(opacity) / wp.float64(alpha_min)) + wp.float64(_SIGMA_SLACK)
     box = wp.vec2(NO_BOX, NO_BOX)
-    if opacity < alpha_min:
+    if threshold < wp.float64(0.0):
         box = wp.vec2(-NO_BOX, -NO_BOX)
     elif det > wp.float64(0.0) and low > wp.float64(0.0):
         error = wp.float64(_SIGMA_ERROR_PER_KAPPA) * (half_trace + root) / low
         if error < wp.float64(0.5):
-            t = (wp.log(wp.float64(opacity) / wp.float64(alpha_min)) + wp.float64(_SIGMA_SLACK)) / (
-                wp.float64(1.0) - error)
+            t = threshold / (wp.float64(1.0) - error)
             slack = wp.float64(_BOX_SLACK_PX) + wp.float64(_BOX_SLACK_REL) * wp.float64(
                 wp.abs(xy[0]) + wp.abs(xy[1]))
             grow = wp.float64(1.0) + wp.float64(_BOX_SLACK_REL)

@@ -58,8 +58,14 @@ def passing_offsets(x, y, conic, opacity, reach):
     dy = (torch.tensor(y, dtype=torch.float32) - py)[:, None]
     a, b, c = (torch.tensor(float(v), dtype=torch.float32) for v in conic)
     sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-    alpha = torch.clamp(torch.tensor(float(opacity)) * torch.exp(-sigma), max=ALPHA_MAX)
-    passed = (sigma >= 0) & (alpha >= ALPHA_MIN)
+    # A compiler may fuse multiplies and adds (FMA): σ from float32 inputs computed exactly, then
+    # rounded once, stands for any such contraction.
+    exact = (0.5 * (a.double() * dx.double() ** 2 + c.double() * dy.double() ** 2)
+             + b.double() * dx.double() * dy.double()).float()
+    passed = torch.zeros_like(sigma, dtype=torch.bool)
+    for s in (sigma, exact):
+        alpha = torch.clamp(torch.tensor(float(opacity)) * torch.exp(-s), max=ALPHA_MAX)
+        passed |= (s >= 0) & (alpha >= ALPHA_MIN)
     return dx.expand_as(passed)[passed], dy.expand_as(passed)[passed]
 
 
@@ -80,6 +86,17 @@ def test_every_passing_pixel_lies_in_the_box(anisotropy, centre_scale):
             continue
         assert bool((dx.abs() <= hx).all() and (dy.abs() <= hy).all()), (i, hx, hy)
     assert bounded > len(xy) // 2  # boxes are the rule, not the exception
+
+
+def test_an_opacity_a_rounding_error_below_alpha_min_keeps_its_centre():
+    # The GPU's fast exp need not round e^0 to at most 1: such a Gaussian may still blend at its
+    # centre, so its box must hold the centre rather than be empty.
+    below = torch.nextafter(torch.tensor(ALPHA_MIN), torch.tensor(0.0))
+    xy, conics, _ = gaussians(8, seed=9, anisotropy=2.0, centre_scale=10.0)
+    boxes = boxes_of(xy, conics, torch.full((8,), float(below)))
+    assert bool((boxes >= 0).all())
+    far_below = boxes_of(xy, conics, torch.full((8,), ALPHA_MIN * 0.99))
+    assert bool((far_below < 0).all())  # well below: nothing passes, and the box is empty
 
 
 def test_boxes_are_tight_for_well_conditioned_gaussians():
