@@ -12,10 +12,10 @@ import warp as wp
 COLOR_STORAGES = {"float32": wp.float32, "float16": wp.float16}
 
 # A record's float32 words: x, y, conic a, b, c, opacity, depth, the half-widths of its blending box
-# (``blend_box``; in the RGB record they fill what was padding), then its colours when they are float32, padded to a multiple of 4 words so that
-# rows are 16-byte aligned. float16 colours stay in their own [N, C] table (a second indexed load per
-# batch): widened into the float32 record they would take twice the bytes, which float16 storage
-# exists to save.
+# (``blend_box``; in the RGB record they fill what was padding), then its colours when they are
+# float32, padded to a multiple of 4 words so that rows are 16-byte aligned. float16 colours stay in
+# their own [N, C] table (a second indexed load per batch): widened into the float32 record they
+# would take twice the bytes, which float16 storage exists to save.
 R_XY, R_CONIC, R_OPACITY, R_DEPTH, R_BOX, R_COLOR = 0, 2, 5, 6, 7, 9
 
 # Bound on the relative error of the blending kernels' float32 sigma per unit of the conic's
