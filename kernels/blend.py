@@ -75,15 +75,19 @@ def block_barrier():
 
 
 @wp.func
-def warp_band(tile_x0: int, tile_y0: int, tile_size: int, lane: int, pixels: int) -> wp.vec4:
-    """(x_lo, x_hi, y_lo, y_hi): the pixel centres of the CUDA warp that holds thread ``lane`` of a
-    tile whose top-left pixel is (tile_x0, tile_y0), when thread t walks ``pixels`` rows from row
-    (t // tile_size)·pixels of column t % tile_size. 32 lanes span whole rows of a tile of 8, 16 or
-    32. On the CPU a thread is its own warp, and this band holds its pixels too."""
-    w0 = lane - lane % 32
-    return wp.vec4(float(tile_x0) + 0.5, float(tile_x0 + tile_size) - 0.5,
-                   float(tile_y0 + (w0 // tile_size) * pixels) + 0.5,
-                   float(tile_y0 + ((w0 + 31) // tile_size) * pixels + pixels) - 0.5)
+def warp_band(tile_x0: int, tile_y0: int, tile_size: int, lane: int, pixels: int, lanes: int) -> wp.vec4:
+    """(x_lo, x_hi, y_lo, y_hi): the pixel centres of the ``lanes`` consecutive threads (a CUDA warp:
+    32; a CPU thread, its own warp: 1) that hold thread ``lane`` of a tile whose top-left pixel is
+    (tile_x0, tile_y0), when thread t walks ``pixels`` rows from row (t // tile_size)·pixels of
+    column t % tile_size. 32 lanes span whole rows of a tile of 8, 16 or 32."""
+    w0 = lane - lane % lanes
+    x0 = tile_x0
+    x1 = tile_x0 + tile_size - 1
+    if lanes < tile_size:
+        x0 = tile_x0 + w0 % tile_size
+        x1 = x0 + lanes - 1
+    return wp.vec4(float(x0) + 0.5, float(x1) + 0.5, float(tile_y0 + (w0 // tile_size) * pixels) + 0.5,
+                   float(tile_y0 + ((w0 + lanes - 1) // tile_size) * pixels + pixels) - 0.5)
 
 
 # Gradient vector layout per Gaussian: [d mean2d (2), d conic (3), d opacity (1), d colour (C), d depth],
@@ -254,6 +258,9 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
     TS = tile_size
     B = batch
     COOP = cooperative
+    # Threads that share a warp's vote and sums: a CUDA warp; without cooperative batches (the CPU),
+    # each thread is its own.
+    LANES = 32 if cooperative else 1
     DEPTH = 1 if with_depth else 0
     NG = gradient_width(C, with_depth)
     WARP_WALK = warp_walk
@@ -311,6 +318,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         fy = float(py) + 0.5
         start = ranges[tile, 0]
         end = ranges[tile, 1]
+        band = warp_band((tile - ty * tiles_x) * TS, ty * TS, TS, lane, 1, LANES)
 
         T = float(1.0)
         acc = ColorVec()
@@ -353,6 +361,11 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                     else:
                         gid = sorted_ids[b0 + j]
                         row = gid
+                    if wp.static(PACKED and not COOP):
+                        # A thread reading its own batch skips a Gaussian whose blending box misses
+                        # its pixel (on CUDA, where a warp shares a batch, this measured slower).
+                        if outside_box(rec, row, band[0], band[1], band[2], band[3]):
+                            continue
                     if wp.static(PACKED):
                         xy, cn, op = record_geometry(rec, row)
                     elif wp.static(COOP):
@@ -431,7 +444,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         fx = float(px) + 0.5
         start = ranges[tile, 0]
         leader = lane % wp.block_dim() == 0
-        band = warp_band((tile - ty * tiles_x) * TS, ty * TS, TS, lane, PX)
+        band = warp_band((tile - ty * tiles_x) * TS, ty * TS, TS, lane, PX, LANES)
 
         # Per-pixel state, pixel p at [p] (and colour c at [p·C + c]).
         fy = PixVec()
@@ -513,14 +526,19 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                     row = gid
                 if wp.static(PACKED):
                     # A Gaussian whose blending box the warp's pixels all miss adds nothing to them.
-                    # Warp-uniform: the whole warp skips together, before its vote. (The forward does
-                    # not test the box: its work per Gaussian is short, and with the test it measured
-                    # slower; docs/results.md, "Blending boxes".)
+                    # Warp-uniform: the whole warp skips together, before its vote. (The forward tests
+                    # the box on the CPU only: on CUDA its work per Gaussian is short, and with the
+                    # test it measured slower; docs/results.md, "Blending boxes".)
                     if outside_box(rec, row, band[0], band[1], band[2], band[3]):
                         continue
                 if b0 + j <= last_max:
                     # The geometry, read once for the thread's pixels; colours and depth only where a
                     # pixel blends the Gaussian.
+                    if wp.static(PACKED and not COOP):
+                        # A thread reading its own batch skips a Gaussian whose blending box misses
+                        # its pixel (on CUDA, where a warp shares a batch, this measured slower).
+                        if outside_box(rec, row, band[0], band[1], band[2], band[3]):
+                            continue
                     if wp.static(PACKED):
                         xy, cn, op = record_geometry(rec, row)
                     elif wp.static(COOP):
