@@ -161,25 +161,27 @@ def gradient_scatter(width: int):
 
 @functools.lru_cache(maxsize=None)
 def unpack_gradients_kernel(channels: int, with_depth: bool):
-    """Kernel writing the backward's gradient table ``grad`` [N, gradient_width] into the per-field
+    """Kernel writing the backward's gradient table ``v_gaussians`` [N, gradient_width] into the per-field
     gradients the projection's adjoint and the caller read: v_means2d [N] vec2, v_conics [N] vec3,
     v_opacities [N], v_colors [N, C] and, with depth, v_depths [N] (overwritten, not added to)."""
     C = channels
     DEPTH = int(with_depth)
 
-    def unpack(grad: wp.array2d(dtype=float), v_means2d: wp.array(dtype=wp.vec2), v_conics: wp.array(dtype=wp.vec3),
-               v_opacities: wp.array(dtype=float), v_colors: wp.array2d(dtype=float), v_depths: wp.array(dtype=float)):
+    def unpack(v_gaussians: wp.array2d(dtype=float), v_means2d: wp.array(dtype=wp.vec2),
+               v_conics: wp.array(dtype=wp.vec3), v_opacities: wp.array(dtype=float), v_colors: wp.array2d(dtype=float),
+               v_depths: wp.array(dtype=float)):
         i = wp.tid()
-        v_means2d[i] = wp.vec2(grad[i, _XY], grad[i, _XY + 1])
-        v_conics[i] = wp.vec3(grad[i, _CONIC], grad[i, _CONIC + 1], grad[i, _CONIC + 2])
-        v_opacities[i] = grad[i, _OPACITY]
+        v_means2d[i] = wp.vec2(v_gaussians[i, _XY], v_gaussians[i, _XY + 1])
+        v_conics[i] = wp.vec3(v_gaussians[i, _CONIC], v_gaussians[i, _CONIC + 1], v_gaussians[i, _CONIC + 2])
+        v_opacities[i] = v_gaussians[i, _OPACITY]
         for c in range(C):
-            v_colors[i, c] = grad[i, _COLOR + c]
+            v_colors[i, c] = v_gaussians[i, _COLOR + c]
         if wp.static(DEPTH == 1):
-            v_depths[i] = grad[i, _COLOR + C]
+            v_depths[i] = v_gaussians[i, _COLOR + C]
 
     unpack.__name__ = unpack.__qualname__ = f"unpack_gradients_c{C}{'_depth' if DEPTH else ''}"
     return wp.kernel(unpack, enable_backward=False, module="unique")
+
 
 # Upper bound on the shared memory of one batch (bytes), to pick the batch size for wide colours.
 _BATCH_SHARED_BYTES = 24 * 1024
