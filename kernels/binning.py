@@ -24,6 +24,8 @@ capacity whose unused keys hold a padding tile id (one past the last tile), whic
 """
 import warp as wp
 
+from .records import SIGMA_SLACK
+
 # Binning is not differentiable: skip generating adjoints.
 wp.set_module_options({"enable_backward": False})
 
@@ -45,9 +47,8 @@ def tile_rect(mean2d: wp.vec2, radius: wp.vec2i, tile_size: int, tiles_x: int, t
 
 # Slack of the ellipse test in sigma = -ln(alpha / opacity) units: the blending kernel evaluates sigma
 # in float32 at pixel centres, so a tile whose exact minimum lies a rounding error beyond the
-# threshold may still receive a pixel with alpha >= alpha_min. 1e-3 absolute plus 1e-4 of the
+# threshold may still receive a pixel with alpha >= alpha_min. SIGMA_SLACK absolute plus 1e-4 of the
 # quadratic form's terms is far above float32 rounding and keeps only a sliver of extra tiles.
-_SIGMA_SLACK_ABS = 1.0e-3
 _SIGMA_SLACK_REL = 1.0e-4
 
 
@@ -102,8 +103,8 @@ def ellipse(mean2d: wp.vec2, conic: wp.vec3, opacity: float, alpha_min: float) -
 @wp.func
 def reaches_tile(e: Ellipse, tx: int, ty: int, tile_size: int) -> bool:
     """Whether some point of tile (tx, ty)'s pixel-centre rectangle has opacity·e^(−sigma) >= alpha_min
-    (up to ``_SIGMA_SLACK_*``): the exact minimum of the convex sigma over the rectangle, which is 0
-    when the centre is inside and otherwise lies on one of its four edges."""
+    (up to ``SIGMA_SLACK`` and ``_SIGMA_SLACK_REL``): the exact minimum of the convex sigma over the
+    rectangle, which is 0 when the centre is inside and otherwise lies on one of its four edges."""
     ts = float(tile_size)
     # Offsets (pixel centre − mean) of the tile's first and last pixel centres.
     x0 = wp.float64(float(tx) * ts + 0.5 - e.mean2d[0])
@@ -123,7 +124,7 @@ def reaches_tile(e: Ellipse, tx: int, ty: int, tile_size: int) -> bool:
     other = edge_sigma(e.conic, e.inv_diag, y1, x0, x1, False)
     if other[0] < best[0]:
         best = other
-    slack = wp.float64(_SIGMA_SLACK_ABS) + wp.float64(_SIGMA_SLACK_REL) * best[1]
+    slack = wp.float64(SIGMA_SLACK) + wp.float64(_SIGMA_SLACK_REL) * best[1]
     return best[0] <= e.limit + slack
 
 

@@ -320,7 +320,6 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
         fy = float(py) + 0.5
         start = ranges[tile, 0]
         end = ranges[tile, 1]
-        band = warp_band((tile - ty * tiles_x) * TS, ty * TS, TS, lane, 1, LANES)
 
         T = float(1.0)
         acc = ColorVec()
@@ -366,7 +365,7 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                     if wp.static(PACKED and not COOP):
                         # A thread reading its own batch skips a Gaussian whose blending box misses
                         # its pixel (on CUDA, where a warp shares a batch, this measured slower).
-                        if outside_box(rec, row, band[0], band[1], band[2], band[3]):
+                        if outside_box(rec, row, fx, fx, fy, fy):
                             continue
                     if wp.static(PACKED):
                         xy, cn, op = record_geometry(rec, row)
@@ -536,11 +535,6 @@ def blend_kernels(channels: int, tile_size: int, with_depth: bool, batch: int, c
                 if b0 + j <= last_max:
                     # The geometry, read once for the thread's pixels; colours and depth only where a
                     # pixel blends the Gaussian.
-                    if wp.static(PACKED and not COOP):
-                        # A thread reading its own batch skips a Gaussian whose blending box misses
-                        # its pixel (on CUDA, where a warp shares a batch, this measured slower).
-                        if outside_box(rec, row, band[0], band[1], band[2], band[3]):
-                            continue
                     if wp.static(PACKED):
                         xy, cn, op = record_geometry(rec, row)
                     elif wp.static(COOP):

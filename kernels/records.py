@@ -22,9 +22,11 @@ R_XY, R_CONIC, R_OPACITY, R_DEPTH, R_BOX, R_COLOR = 0, 2, 5, 6, 7, 9
 # condition number κ: the terms of ½(a·dx² + c·dy²) + b·dx·dy add up to at most 2κ·sigma, each
 # rounded once or twice (3 ε ≈ 1.8e-7 a unit of sigma); four times that for margin.
 _SIGMA_ERROR_PER_KAPPA = 1.5e-6
-# Absolute slack on the threshold (covers exp's few-ulp error) and on the half-widths (pixels:
-# rounding of the pixel offsets and of the box test), plus the offsets' own ulp at large coordinates.
-_SIGMA_SLACK = 1.0e-3
+# Absolute slack on a threshold in sigma units where the blending kernels evaluate sigma and exp in
+# float32 (exp's few-ulp error, pixel-centre rounding): the binning's ellipse test and the blending
+# box both widen by it. Then the box's half-widths' slack (pixels: rounding of the pixel offsets and
+# of the box test), plus the offsets' own ulp at large coordinates.
+SIGMA_SLACK = 1.0e-3
 _BOX_SLACK_PX = 1.0e-2
 _BOX_SLACK_REL = 1.0e-6
 # Half-width that no test rejects: the box of a Gaussian too ill-conditioned to bound.
@@ -76,7 +78,7 @@ def blend_box(xy: wp.vec2, conic: wp.vec3, opacity: float, alpha_min: float) -> 
     low = half_trace - root
     # The threshold with its slack: below 0 no pixel passes (the slack also covers an exp that
     # rounds e^0 above 1 for an opacity a rounding error below alpha_min).
-    threshold = wp.log(wp.float64(opacity) / wp.float64(alpha_min)) + wp.float64(_SIGMA_SLACK)
+    threshold = wp.log(wp.float64(opacity) / wp.float64(alpha_min)) + wp.float64(SIGMA_SLACK)
     box = wp.vec2(NO_BOX, NO_BOX)
     if threshold < wp.float64(0.0):
         box = wp.vec2(-NO_BOX, -NO_BOX)

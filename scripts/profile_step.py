@@ -117,7 +117,7 @@ def main():
             table += f"\n\n{label} step / Scaffold-GS step (no timers): {ratio:.2f}"
         tables.append(table)
     if counts:
-        kinds = step_profile.COUNTS if args.device == "cuda" else step_profile.HOST_COUNTS
+        kinds = step_profile.COUNTS if benchmark.on_cuda(args.device) else step_profile.HOST_COUNTS
         tables.append(step_profile.count_table(counts, f"What a step launches, per step: {setup}", kinds))
     if syncs:
         tables.append(step_profile.census_table(syncs, f"Where a step waits for the device: {setup}"))

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from securegs_warp import benchmark
 from securegs_warp.cli.common import quiet_warp
 from securegs_warp.compare import BASELINE, markdown_row, parse_variant, public_row, train, write_report
 from securegs_warp.config import SecureConfig, TrainConfig
@@ -67,7 +68,7 @@ def main():
     config = TrainConfig(iterations=args.iterations, seed=args.seed, raster=RasterOptions.for_device(args.device))
     radius = 0.03 * float(np.linalg.norm(np.ptp(scene.hidden_points, axis=0)))
     rows, clouds = {}, {}
-    device = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
+    device = benchmark.device_label(args.device)
     meta = {"device": device, "date": time.strftime("%Y-%m-%d"), "width": args.width, "height": args.height,
             "iterations": args.iterations, "seed": args.seed, "hidden": args.hide, "payload": args.payload,
             "placement": args.placement,

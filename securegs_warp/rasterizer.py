@@ -402,10 +402,10 @@ class RenderPlan:
                 "quats": _wp(inputs["quats"], wp.vec4, grad=g),
                 "scales": _wp(inputs["scales"], wp.vec3, grad=g),
                 "opacities": _wp(inputs["opacities"], wp.float32, grad=g),
-                # Colours only reach the hand-written blend adjoint, which writes their float32
-                # gradient into colors_grad whatever the table's storage type.
+                # Colours only reach the hand-written blend adjoint, whose gradient table is unpacked
+                # into colors_grad (every entry, float32 whatever the table's storage type).
                 "color_table": _wp(inputs["color_table"], COLOR_STORAGES[opts.color_storage]),
-                "colors_grad": _wp(torch.zeros_like(inputs["colors"]), wp.float32) if g else None,
+                "colors_grad": _wp(torch.empty_like(inputs["colors"]), wp.float32) if g else None,
                 "background": _wp(inputs["background"], wp.float32, grad=g),
                 "viewmat": _wp(inputs["viewmat"], wp.float32),
                 "K": _wp(inputs["K"], wp.float32),

@@ -521,7 +521,8 @@ class SecureTrainer(ScaffoldTrainer):
                for name in ("private", "bit_seeds", "messages")):
             raise ValueError(f"{path}: the checkpoint holds another number of secrets (or was written by an earlier "
                              "securegs-warp); start the run again")
-        for i, (spec, message) in enumerate(zip(parse_secrets(self.secure.payload), state["messages"])):
+        for i, (payload, message) in enumerate(zip(self.payloads, state["messages"])):
+            spec = payload.spec
             if spec.bit_string is not None and message_string(message) != spec.bit_string:
                 raise ValueError(f"{path}: secret {i + 1} of the run hides another message than the one given now; "
                                  f"resume with bits:{spec.bits} (the checkpoint keeps its message) or the same one")
