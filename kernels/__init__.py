@@ -2,7 +2,8 @@
 
 Pure Warp: no torch import here. Each module holds the kernels of one pipeline stage (projection,
 binning, blending), of the training loss (ssim) or of the synthetic scenes' ray caster (raycast);
-``records`` holds the packed per-Gaussian row that the projection writes and the blending reads.
+``records`` holds the packed per-Gaussian row that the projection writes and the blending reads;
+``checks`` the input checks that a render replayed from a graph runs on the device.
 """
 if __name__ != "securegs_warp.kernels":
     # Imported as the top-level name ``kernels`` only because the repository root is on sys.path

@@ -94,6 +94,17 @@ def cotangents(width: int, height: int, device: str, seed: int = 1, normal: bool
     return (draw(height, width, 3, generator=g).to(device), draw(height, width, 1, generator=g).to(device))
 
 
+def render_call(fn, backward: bool, grads):
+    """A callable that renders ``fn() -> (image [H, W, C], alpha [H, W, 1])`` and, with ``backward``,
+    backpropagates the loss Σ image·grads[0] + Σ alpha·grads[1]: one timed call of the benchmarks."""
+    def once():
+        image, alpha = fn()
+        if backward:
+            (image * grads[0]).sum().add_((alpha * grads[1]).sum()).backward()
+
+    return once
+
+
 def timed(fn, backward: bool, device: str, warmup: int, runs: int, grads) -> float:
     """Median milliseconds of fn() (and of a backward through it), after ``warmup`` untimed calls.
 
@@ -103,12 +114,7 @@ def timed(fn, backward: bool, device: str, warmup: int, runs: int, grads) -> flo
     """
     if runs < 1 or warmup < 0:
         raise ValueError(f"need runs >= 1 and warmup >= 0, got runs={runs}, warmup={warmup}")
-
-    def once():
-        image, alpha = fn()
-        if backward:
-            (image * grads[0]).sum().add_((alpha * grads[1]).sum()).backward()
-
+    once = render_call(fn, backward, grads)
     for _ in range(warmup):
         once()
     times = []
@@ -252,11 +258,7 @@ def kernel_breakdown(fn, backward: bool, grads, runs: int = 5) -> dict:
     from torch.autograd import DeviceType
     from torch.profiler import ProfilerActivity, profile
 
-    def once():
-        image, alpha = fn()
-        if backward:
-            (image * grads[0]).sum().add_((alpha * grads[1]).sum()).backward()
-
+    once = render_call(fn, backward, grads)
     once()
     torch.cuda.synchronize()
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:

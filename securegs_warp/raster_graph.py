@@ -8,9 +8,9 @@ adjoint) are captured as Warp graphs on CUDA after a first direct run and replay
 the CPU the same launches run directly.
 
 The eager op learns the intersection count and the inputs' finiteness before it sorts (one host
-synchronisation). A replay cannot: it copies both to host memory asynchronously, and the next forward
-of the same entry reads them after waiting for that earlier forward only (not for the work queued
-since). A non-finite input raises there. A count past the capacity (the render lacked some
+synchronisation). A replay cannot: its graph checks the inputs and writes both into one status
+buffer, copied to host memory asynchronously, and the next forward of the same entry reads it after
+waiting for that earlier forward only (not for the work queued since). A non-finite input raises there. A count past the capacity (the render lacked some
 intersections) grows that entry's capacity for the renders to come, and raises unless the caller
 already asked whether that render was complete (``info["complete"]``, which itself raises for a
 non-finite input): a training loop that asks can drop the step instead of stopping
@@ -28,6 +28,7 @@ import functools
 import torch
 import warp as wp
 
+from .kernels.checks import flag_nonfinite
 from .lease import Lease
 from .rasterizer import OUTPUT_NAMES, SECOND_BACKWARD, RasterOptions, RenderPlan, check_finite
 from .warp_scope import warp_stream
@@ -44,12 +45,19 @@ _POOL: collections.OrderedDict[tuple, list[_Captured]] = collections.OrderedDict
 
 
 class _Captured:
-    def __init__(self, inputs: dict, width: int, height: int, opts: RasterOptions):
+    def __init__(self, inputs: dict, checked: dict, width: int, height: int, opts: RasterOptions):
         self.static = {name: t.detach().clone() for name, t in inputs.items()}
         if inputs["color_table"] is inputs["colors"]:
             self.static["color_table"] = self.static["colors"]
         self.plan = RenderPlan(self.static, width, height, opts)
         self.cuda = self.static["means"].device.type == "cuda"
+        # What each forward writes for the host to read: [1 + K] int64, the intersection count, then
+        # 1 for each of the K ``checked`` inputs (error name → key of ``inputs``) holding a NaN or inf.
+        self.names = tuple(checked)
+        self.status = torch.zeros(1 + len(checked), device=self.static["means"].device, dtype=torch.int64)
+        self.w_status = wp.from_torch(self.status, dtype=wp.int64)
+        self.w_checked = [wp.from_torch(self.static[key].reshape(-1), dtype=wp.dtype_from_torch(self.static[key].dtype))
+                          for key in checked.values()]
         with self.plan.scoped():
             self.plan.project_and_count()
         needed = int(self.plan.ends[-1]) if self.plan.n else 0
@@ -57,9 +65,8 @@ class _Captured:
         self.graphs = {}
         self.busy = False
         self.pending: _Render | None = None  # the last forward, not yet read
-        if self.cuda:  # where the replays' count and finiteness flags land, asynchronously
-            self.host_count = torch.empty(1, dtype=torch.int64, pin_memory=True)
-            self.host_flags = torch.empty(len(inputs) + 1, dtype=torch.bool, pin_memory=True)
+        if self.cuda:  # where the replays' status lands, asynchronously
+            self.host_status = torch.empty_like(self.status, device="cpu", pin_memory=True)
         self.zeroed_outputs = [self.plan.w[k] for k in ("means2d", "conics", "depths", "opac_out")]
         # Gradients the backward accumulates into, zeroed by each replay: the inputs' (the projection's
         # adjoint adds to them), the blending backward's table and the background's. The projection's
@@ -74,7 +81,12 @@ class _Captured:
     def _forward_ops(self):
         for a in self.zeroed_outputs:
             a.zero_()
+        self.w_status.zero_()
+        for slot, values in enumerate(self.w_checked, 1):
+            wp.launch(flag_nonfinite, dim=values.shape[0], inputs=[values, self.w_status, slot])
         self.plan.project_and_count()
+        if self.plan.n:
+            wp.copy(self.w_status, self.plan.w["ends"], src_offset=self.plan.n - 1, count=1)
         self.plan.sort_intersections(self.plan.capacity, padded=True)
         self.plan.blend()
 
@@ -126,30 +138,24 @@ class _Captured:
                     "capacity has grown for the next render); check info['complete'] where the scene changes "
                     "this much, or render with capture=False")
 
-    def forward(self, inputs: dict, finite) -> tuple[list, _Render]:
+    def forward(self, inputs: dict) -> tuple[list, _Render]:
         self.check_pending()
         # One multi-tensor copy (a launch or two on CUDA) rather than one a tensor.
         names = [name for name, t in inputs.items() if name != "color_table" or t is not inputs["colors"]]
         torch._foreach_copy_([self.static[name] for name in names], [inputs[name] for name in names])
         self._run("forward", self._forward_ops)
-        names, flags = finite
-        count = self.plan.ends[-1:] if self.plan.n else torch.zeros(1, dtype=torch.int64)
-        flags = flags if flags is not None else torch.ones(0, dtype=torch.bool)
         if self.cuda and torch.cuda.is_current_stream_capturing():
             # Inside a caller's graph nothing runs before its replays: there is nothing to read
             # now. The caller compares info["n_intersections"] with info["capacity"] after each.
             self.pending = None
         elif self.cuda:
-            self.host_count.copy_(count, non_blocking=True)
-            host_flags = self.host_flags[:flags.numel()]
-            host_flags.copy_(flags, non_blocking=True)
+            self.host_status.copy_(self.status, non_blocking=True)
             event = torch.cuda.Event()
             event.record()
-            self.pending = _Render(event, self.host_count, host_flags, names, self.plan.capacity)
+            self.pending = _Render(event, self.host_status, self.names, self.plan.capacity)
         else:
-            self.pending = _Render(None, count.clone(), flags.clone(), names, self.plan.capacity)
-        out = [self.plan.out[k].clone() for k in OUTPUT_NAMES]
-        return out + [self.plan.ends[-1].clone() if self.plan.n else 0], self.pending
+            self.pending = _Render(None, self.status.clone(), self.names, self.plan.capacity)
+        return copies([self.plan.out[k] for k in OUTPUT_NAMES] + [self.status[0]]), self.pending
 
     def grow(self, needed: int) -> None:
         """Make room for a render of ``needed`` intersections and those to come (its graphs are
@@ -159,22 +165,28 @@ class _Captured:
         self.plan.allocate_intersections(int(needed * HEADROOM) + SLACK)
         self.graphs.clear()  # they sort into the old buffers
 
-    def backward(self, grads) -> list:
+    def backward(self, grads, means2d_grad: torch.Tensor) -> list:
+        """The inputs' gradients (fresh tensors) from the output gradients (image, alpha, depth; None
+        for an output the loss does not use); adds dL/d means2d into ``means2d_grad``."""
+        given = [(buffer, g) for buffer, g in zip(self.cotangents, grads) if g is not None]
         for buffer, g in zip(self.cotangents, grads):
             if g is None:
                 buffer.zero_()
-            else:
-                buffer.copy_(g)
+        if given:
+            torch._foreach_copy_(*map(list, zip(*given)))
         self._run("backward", self._backward_ops)
-        return [g.clone() for g in self.plan.grads], self.plan.means2d_grad.clone()
+        # Read in stream order, before any later replay overwrites it.
+        means2d_grad += self.plan.means2d_grad
+        return copies(self.plan.grads)
 
 
 class _Render:
-    """One captured forward's intersection count and input finiteness flags, in host memory that
-    its entry's next forward reuses: read (``read``) before that, and kept."""
+    """One captured forward's status (intersection count, then a non-finite flag per checked input
+    named in ``names``), in host memory that its entry's next forward reuses: read (``read``) before
+    that, and kept."""
 
-    def __init__(self, event, count: torch.Tensor, flags: torch.Tensor, names: tuple, capacity: int):
-        self.event, self.count, self.flags, self.names, self.capacity = event, count, flags, names, capacity
+    def __init__(self, event, status: torch.Tensor, names: tuple, capacity: int):
+        self.event, self.status, self.names, self.capacity = event, status, names, capacity
         self.needed: int | None = None
         self.finite: list | None = None
         self.asked = False
@@ -183,7 +195,8 @@ class _Render:
         if self.needed is None:
             if self.event is not None:
                 self.event.synchronize()
-            self.needed, self.finite = int(self.count), self.flags.tolist()
+            count, *flags = self.status.tolist()
+            self.needed, self.finite = count, [flag == 0 for flag in flags]
 
     def complete(self) -> bool:
         """Whether the capacity held every tile intersection of this render (waits for it only);
@@ -205,7 +218,20 @@ def settle() -> None:
                 entry.check_pending()
 
 
-def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Captured:
+def copies(tensors: list) -> list:
+    """Fresh copies of ``tensors``: one multi-tensor copy per dtype (a launch on CUDA) rather than a
+    clone each. A replay overwrites its entry's buffers, which the caller's tensors must outlive."""
+    out = [torch.empty_like(t) for t in tensors]
+    groups = collections.defaultdict(lambda: ([], []))
+    for dst, src in zip(out, tensors):
+        groups[src.dtype][0].append(dst)
+        groups[src.dtype][1].append(src)
+    for dst, src in groups.values():
+        torch._foreach_copy_(dst, src)
+    return out
+
+
+def _acquire(inputs: dict, checked: dict, width: int, height: int, opts: RasterOptions) -> _Captured:
     means, colors = inputs["means"], inputs["colors"]
     key = (str(means.device), means.shape[0], colors.shape[1], width, height, opts)
     entries = _POOL.setdefault(key, [])
@@ -219,18 +245,18 @@ def _acquire(inputs: dict, width: int, height: int, opts: RasterOptions) -> _Cap
     for entry in entries:
         if not entry.busy:
             return entry
-    entries.append(_Captured(inputs, width, height, opts))
+    entries.append(_Captured(inputs, checked, width, height, opts))
     return entries[-1]
 
 
 class _CapturedRasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, background, inputs, width, height, opts, info, finite):
+    def forward(ctx, means, quats, scales, opacities, colors, background, inputs, width, height, opts, info, checked):
         wp.init()
-        entry = _acquire(inputs, width, height, opts)
+        entry = _acquire(inputs, checked, width, height, opts)
         lease = Lease(entry)
         try:
-            outputs, render = entry.forward(inputs, finite)
+            outputs, render = entry.forward(inputs)
         except BaseException:
             lease.release()
             raise
@@ -243,6 +269,8 @@ class _CapturedRasterize(torch.autograd.Function):
         if render is not None:
             info["complete"] = render.complete
         ctx.mark_non_differentiable(*outputs[3:8])
+        # An output the loss does not use gets None in backward, not a tensor of zeros its size.
+        ctx.set_materialize_grads(False)
         return tuple(outputs)
 
     @staticmethod
@@ -252,17 +280,17 @@ class _CapturedRasterize(torch.autograd.Function):
             raise RuntimeError(SECOND_BACKWARD)
         ctx.lease = None
         try:
-            grads, means2d_grad = lease.entry.backward((g_image, g_alpha, g_depth))
+            grads = lease.entry.backward((g_image, g_alpha, g_depth), ctx.info["means2d_grad"])
         finally:
             lease.release()
-        ctx.info["means2d_grad"] += means2d_grad
         # means, quats, scales, opacities, colors, background; nothing for the rest.
         return (*grads, None, None, None, None, None, None)
 
 
-def rasterize_captured(inputs: dict, width: int, height: int, opts: RasterOptions, info: dict, finite):
+def rasterize_captured(inputs: dict, width: int, height: int, opts: RasterOptions, info: dict, checked: dict):
     """``rasterize``'s outputs (image, alpha, depth, radii, means2d, conics, depths, opacities,
     n_intersections as a 0-d device tensor) from a pooled captured entry; ``inputs`` as
-    ``RenderPlan`` takes them."""
+    ``RenderPlan`` takes them; ``checked``: the inputs whose finiteness is checked, as name in an
+    error message → key of ``inputs``."""
     return _CapturedRasterize.apply(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"],
-                                    inputs["colors"], inputs["background"], inputs, width, height, opts, info, finite)
+                                    inputs["colors"], inputs["background"], inputs, width, height, opts, info, checked)

@@ -270,14 +270,14 @@ def rasterize(
     means, quats, scales, opacities, colors, viewmat, K, background = named.values()
     # The table the blending kernels read: a float16 copy made once per render, or colors itself.
     color_table = colors.to(torch.float16) if opts.color_storage == "float16" else colors
-    checked = dict(named)
+    inputs = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, color_table=color_table,
+                  background=background, viewmat=viewmat.detach().reshape(16), K=K.detach().reshape(9))
+    # The inputs whose finiteness is checked, as name in an error message → key of ``inputs`` (an
+    # empty tensor has nothing to check).
+    checked = {name: name for name in named}
     if color_table is not colors:
-        checked["colors (as float16: |value| > 65504)"] = color_table
-    # Finiteness is checked on the device and read back with the intersection count (one sync):
-    # one fused max-|value| reduction over the inputs (NaN and inf propagate through it; an empty
-    # tensor has no maximum and nothing to check).
-    checked = {name: t for name, t in checked.items() if t.numel()}
-    flags = torch.stack(torch._foreach_norm(list(checked.values()), math.inf)).isfinite() if checked else None
+        checked["colors (as float16: |value| > 65504)"] = "color_table"
+    checked = {name: key for name, key in checked.items() if inputs[key].numel()}
     n = means.shape[0]
     info = {
         "means2d_grad": torch.zeros(n, 2, device=means.device, dtype=torch.float32),
@@ -285,15 +285,19 @@ def rasterize(
         "width": int(width),
         "height": int(height),
     }
-    inputs = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, color_table=color_table,
-                  background=background, viewmat=viewmat.detach().reshape(16), K=K.detach().reshape(9))
     needs_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (means, quats, scales, opacities, colors, background))
     if opts.capture:
         from .raster_graph import rasterize_captured  # noqa: PLC0415 (it builds on this module)
 
-        outputs = rasterize_captured(inputs, int(width), int(height), opts, info, (tuple(checked), flags))
+        # A replay checks finiteness in its graph (raster_graph).
+        outputs = rasterize_captured(inputs, int(width), int(height), opts, info, checked)
     else:
+        # Checked on the device and read back with the intersection count (the render's one host
+        # synchronisation): one fused max-|value| reduction over the inputs (NaN and inf propagate
+        # through it).
+        tensors = [inputs[key] for key in checked.values()]
+        flags = torch.stack(torch._foreach_norm(tensors, math.inf)).isfinite() if tensors else None
         outputs = _Rasterize.apply(*inputs.values(), int(width), int(height), opts, info, (tuple(checked), flags),
                                    needs_grad)
     image, alpha, depth, radii, means2d, conics, depths, opac, n_isect = outputs
@@ -578,6 +582,8 @@ class _Rasterize(torch.autograd.Function):
         ctx.plan = plan
         ctx.info = info
         ctx.mark_non_differentiable(*(plan.out[k] for k in OUTPUT_NAMES[3:]))
+        # An output the loss does not use gets None in backward, not a tensor of zeros its size.
+        ctx.set_materialize_grads(False)
         return (*(plan.out[k] for k in OUTPUT_NAMES), n_isect)
 
     @staticmethod

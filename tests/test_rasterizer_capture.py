@@ -138,6 +138,44 @@ def test_complete_raises_for_a_non_finite_input_naming_it():
         info["complete"]()
 
 
+@pytest.mark.parametrize("name, index, value, options, match", [
+    ("means", (2, 0), float("inf"), {}, "means"), ("quats", (5, 3), float("nan"), {}, "quats"),
+    ("opacities", (4,), -float("inf"), {}, "opacities"), ("colors", (1, 2), float("nan"), {}, "colors"),
+    ("background", (0,), float("inf"), {}, "background"), ("viewmat", (0, 3), float("nan"), {}, "viewmat"),
+    ("K", (0, 0), float("inf"), {}, "K"),
+    # Finite in float32, infinite in the float16 table the blending reads.
+    ("colors", (1, 2), 7e4, {"color_storage": "float16"}, r"colors \(as float16"),
+])
+def test_each_checked_input_is_named_by_a_replay(name, index, value, options, match):
+    """The replay's own check (a kernel in its graph, float32 and float16 tables): a render of the
+    same shape before it builds the graph, so that on CUDA the bad render is a replay."""
+    def complete(scene):
+        tensors = {key: getattr(scene, key).to(TEST_DEVICE) for key in (*DIFF_INPUTS, "viewmat", "K")}
+        _, _, info = rasterize(**tensors, width=scene.width, height=scene.height, capture=True, **scene.kwargs)
+        return info["complete"]()
+
+    assert complete(random_scene(17, n=70, **options))
+    bad = random_scene(17, n=70, **options)
+    getattr(bad, name)[index] = value
+    with pytest.raises(ValueError, match=match):
+        complete(bad)
+
+
+def test_an_unused_output_has_no_gradient_to_read():
+    """A loss of the image alone: alpha's and depth's gradients reach the op as None."""
+    scene = random_scene(21, n=70)
+    grads = []
+    for capture in (False, True, True):
+        leaves = {name: getattr(scene, name).clone().to(TEST_DEVICE).requires_grad_(True) for name in DIFF_INPUTS}
+        image, _, _ = rasterize(**leaves, viewmat=scene.viewmat.to(TEST_DEVICE), K=scene.K.to(TEST_DEVICE),
+                                width=scene.width, height=scene.height, capture=capture)
+        image.square().sum().backward()
+        grads.append([leaves[name].grad.cpu() for name in DIFF_INPUTS])
+    for captured in grads[1:]:
+        for x, y in zip(captured, grads[0]):
+            assert_gradients_close(x, y)
+
+
 def test_non_finite_input_raises_naming_it():
     scene = random_scene(17, n=70)
     bad = random_scene(17, n=70)
