@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import gc
 
 import torch
 import warp as wp
@@ -111,9 +112,19 @@ class _Captured:
                 side = torch.cuda.Stream(self.static["means"].device)
                 side.wait_stream(torch.cuda.current_stream())
                 w_side = warp_stream(side)
-                # Warp launches go to its current stream: make it the capturing one.
-                with wp.ScopedStream(w_side), wp.ScopedCapture(device=self.plan.device, stream=w_side) as capture:
-                    ops()
+                # A garbage collection during the capture could free a CUDA graph (a caller's, or an
+                # evicted entry's), which CUDA refuses while a stream captures, and the capture would
+                # fail: collect before (as torch.cuda.graph does) and not during.
+                gc.collect()
+                collecting = gc.isenabled()
+                gc.disable()
+                try:
+                    # Warp launches go to its current stream: make it the capturing one.
+                    with wp.ScopedStream(w_side), wp.ScopedCapture(device=self.plan.device, stream=w_side) as capture:
+                        ops()
+                finally:
+                    if collecting:
+                        gc.enable()
                 torch.cuda.current_stream().wait_stream(side)
                 self.graphs[name] = capture.graph
             else:
