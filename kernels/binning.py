@@ -244,6 +244,16 @@ def emit_intersections(
 
 
 @wp.kernel
+def pad_keys(ends: wp.array(dtype=wp.int64), pad: int, keys: wp.array(dtype=wp.int32)):
+    """keys[k] = pad for every k past the last intersection (``ends[-1]``, on the device): the
+    padding of a fixed-capacity list, a tile id past the last tile, which sorts last. Only the tail
+    is written: emit_intersections writes the rest."""
+    k = wp.tid()
+    if wp.int64(k) >= ends[ends.shape[0] - 1]:
+        keys[k] = pad
+
+
+@wp.kernel
 def tile_ranges(keys: wp.array(dtype=wp.int32), count: int, ranges: wp.array2d(dtype=wp.int32)):
     """ranges[t] = [start, end) in the sorted list; tiles without Gaussians stay [0, 0).
 

@@ -3,10 +3,12 @@ GPU's idle time inside each measured call, for ours (eager and captured) and gsp
 
 For each renderer and pass (forward; forward+backward of the loss ``benchmark.timed`` uses) it
 prints: the measured time (CUDA events, median), the host time of the call (perf_counter, without
-waiting for the GPU), and from a torch.profiler trace of a few calls (each started on an idle GPU):
-the GPU's busy time (the union of its kernels, copies and memsets), its idle time before the first
-of them (the host's work before its first launch: "lead"), its idle time after (gaps between GPU work),
-the host launches per call, and the gaps by the code that launched the work that ended them.
+waiting for the GPU), the GPU's busy time (the union of its kernels, copies and memsets in a
+torch.profiler trace of a few calls, each started on an idle GPU), the GPU's idle time (measured −
+busy) and the host launches per call. The JSON rows add, from the trace, the idle time before the
+first launch ("lead") and after it ("gaps"), and the gaps by the code that launched the work that
+ended them: the profiler (with Python stacks) slows the host, so these are larger than in an
+unprofiled call and tell where, not how much.
 
     python scripts/profile_render.py                       # 1M random Gaussians, 1920×1080
     python scripts/profile_render.py --sizes 100000,1000000 --kinds random,realistic --out OUT
@@ -157,11 +159,11 @@ def main():
                     rows.append(row)
                     print(json.dumps(row), flush=True)
     print(f"\n{benchmark.device_label(args.device)}, {args.width}×{args.height}; ms per call\n")
-    print("| scene | N | renderer | pass | measured | host | GPU busy | GPU idle: lead | GPU idle: gaps | launches |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| scene | N | renderer | pass | measured | host | GPU busy | GPU idle | launches |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['scene']} | {r['n']:,} | {r['renderer']} | {r['pass']} | {r['measured_ms']:.3f} | {r['host_ms']:.3f} "
-              f"| {r['gpu_busy_ms']:.3f} | {r['lead_ms']:.3f} | {r['gaps_ms']:.3f} | {r['launches']:.0f} |")
+              f"| {r['gpu_busy_ms']:.3f} | {r['measured_ms'] - r['gpu_busy_ms']:.3f} | {r['launches']:.0f} |")
     if args.out:
         os.makedirs(args.out, exist_ok=True)
         with open(os.path.join(args.out, "profile_render.json"), "w") as f:

@@ -47,18 +47,13 @@ _POOL: collections.OrderedDict[tuple, list[_Captured]] = collections.OrderedDict
 
 class _Captured:
     def __init__(self, inputs: dict, checked: dict, width: int, height: int, opts: RasterOptions):
-        self.static = {name: t.detach().clone() for name, t in inputs.items()}
-        if inputs["color_table"] is inputs["colors"]:
-            self.static["color_table"] = self.static["colors"]
+        self.static, self.names, self.checks = _static_inputs(inputs, checked)
         self.plan = RenderPlan(self.static, width, height, opts)
         self.cuda = self.static["means"].device.type == "cuda"
         # What each forward writes for the host to read: [1 + K] int64, the intersection count, then
-        # 1 for each of the K ``checked`` inputs (error name → key of ``inputs``) holding a NaN or inf.
-        self.names = tuple(checked)
+        # 1 for each of the K checked inputs (``self.names``) holding a NaN or inf.
         self.status = torch.zeros(1 + len(checked), device=self.static["means"].device, dtype=torch.int64)
         self.w_status = wp.from_torch(self.status, dtype=wp.int64)
-        self.w_checked = [wp.from_torch(self.static[key].reshape(-1), dtype=wp.dtype_from_torch(self.static[key].dtype))
-                          for key in checked.values()]
         with self.plan.scoped():
             self.plan.project_and_count()
         needed = int(self.plan.ends[-1]) if self.plan.n else 0
@@ -83,8 +78,8 @@ class _Captured:
         for a in self.zeroed_outputs:
             a.zero_()
         self.w_status.zero_()
-        for slot, values in enumerate(self.w_checked, 1):
-            wp.launch(flag_nonfinite, dim=values.shape[0], inputs=[values, self.w_status, slot])
+        for values, ends, first_slot in self.checks:
+            wp.launch(flag_nonfinite, dim=values.shape[0], inputs=[values, ends, self.w_status, first_slot])
         self.plan.project_and_count()
         if self.plan.n:
             wp.copy(self.w_status, self.plan.w["ends"], src_offset=self.plan.n - 1, count=1)
@@ -227,6 +222,38 @@ def settle() -> None:
         for entry in entries:
             if not entry.busy:
                 entry.check_pending()
+
+
+def _static_inputs(inputs: dict, checked: dict):
+    """A captured entry's copies of ``inputs`` (the buffers its graphs read), the names of the
+    ``checked`` inputs (error name → key of ``inputs``) in the order of their status slots, and the
+    launches of ``flag_nonfinite`` that check them: [(values, segment ends, first slot)].
+
+    The checked float32 inputs share one buffer, each padded with zeros to whole vec4s, so that one
+    launch reading four values a thread checks them all (segment s, ending at vec4 ends[s], is slot
+    1 + s); a float16 colour table is checked by a launch of its own."""
+    device = inputs["means"].device
+    wide = [name for name, key in checked.items() if inputs[key].dtype == torch.float32]
+    names = tuple(wide) + tuple(name for name in checked if name not in wide)
+    sizes = [-(-inputs[checked[name]].numel() // 4) for name in wide]  # in vec4s
+    arena = torch.zeros(max(sum(sizes), 1), 4, device=device)
+    static, start = {}, 0
+    for name, size in zip(wide, sizes):
+        t = inputs[checked[name]]
+        static[checked[name]] = arena.view(-1)[4 * start:4 * start + t.numel()].view(t.shape).copy_(t)
+        start += size
+    for key, t in inputs.items():
+        if key not in static:
+            static[key] = t.detach().clone()
+    if inputs["color_table"] is inputs["colors"]:
+        static["color_table"] = static["colors"]
+    ends = torch.tensor(sizes, dtype=torch.int32).cumsum(0, dtype=torch.int32).to(device)
+    checks = [(wp.from_torch(arena, dtype=wp.vec4), wp.from_torch(ends, dtype=wp.int32), 1)] if wide else []
+    for slot, name in enumerate(names[len(wide):], 1 + len(wide)):
+        t = static[checked[name]]
+        checks.append((wp.from_torch(t.reshape(-1), dtype=wp.dtype_from_torch(t.dtype)),
+                       wp.from_torch(torch.tensor([t.numel()], dtype=torch.int32, device=device), dtype=wp.int32), slot))
+    return static, names, checks
 
 
 def copies(tensors: list) -> list:

@@ -506,12 +506,12 @@ class RenderPlan:
         the whole capacity with padding keys past the last tile (captured: the count stays on the device)."""
         w, opts = self.w, self.opts
         self.w["ranges"].zero_()
-        if count == 0:
+        if count == 0 or self.n == 0:
             return
         # The padding tile id must fit the sorted bits: tile ids 0 .. n_tiles.
         tile_bits = max(1, int(self.n_tiles).bit_length())
         if padded:
-            self.keys.fill_(self.n_tiles)
+            wp.launch(binning.pad_keys, dim=count, inputs=[w["ends"], self.n_tiles], outputs=[self.keys])
         wp.launch(binning.emit_intersections, dim=self.n,
                   inputs=[w["order"], w["means2d"], w["radii"], *self._overlap(), w["counts"], w["ends"],
                           w["tile_masks"], opts.tile_size, self.tiles_x, self.tiles_y, self.capacity],
