@@ -80,8 +80,8 @@ def _label(launcher: dict, python: dict) -> str:
 
 
 def timeline(events: list) -> dict:
-    """Per-call means (ms) of busy, lead and gap time on the GPU, host launches per call, and
-    {label: gap ms per call}."""
+    """Per-call means (ms) of busy, lead and gap time on the GPU, host launches per call,
+    {label: gap ms per call} and {GPU operation: ms per call} (the largest)."""
     calls = sorted((e for e in events if e.get("cat") == "user_annotation" and e["name"] == "call"),
                    key=lambda e: e["ts"])
     gpu = sorted((e for e in events if e.get("cat") in GPU_CATEGORIES), key=lambda e: e["ts"])
@@ -95,12 +95,15 @@ def timeline(events: list) -> dict:
                      or "emset" in e["name"])
     totals = collections.Counter()
     gaps = collections.Counter()
+    kernels = collections.Counter()
     for k, call in enumerate(calls):
         stop = calls[k + 1]["ts"] if k + 1 < len(calls) else float("inf")
         ops = [e for e in gpu if call["ts"] <= e["ts"] < stop]
         if not ops:
             continue
         cursor = call["ts"]
+        for e in ops:
+            kernels[e["name"][:64]] += e["dur"]
         for i, e in enumerate(ops):
             idle = e["ts"] - cursor
             if idle > 0:
@@ -119,7 +122,8 @@ def timeline(events: list) -> dict:
     n = max(len(calls), 1)
     return {"gpu_busy_ms": totals["busy"] / 1000 / n, "lead_ms": totals["lead"] / 1000 / n,
             "gaps_ms": totals["gaps"] / 1000 / n, "launches": n_launches / n,
-            "gaps_by_launcher_ms": {k: v / 1000 / n for k, v in gaps.most_common(8)}}
+            "gaps_by_launcher_ms": {k: v / 1000 / n for k, v in gaps.most_common(8)},
+            "kernels_ms": {k: v / 1000 / n for k, v in kernels.most_common(16)}}
 
 
 def main():
