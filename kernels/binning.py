@@ -4,12 +4,13 @@ Pipeline (driven by ``securegs_warp.rasterizer``):
 1. ``depth_order_keys``, then ``wp.utils.radix_sort_pairs`` on 32-bit keys: the Gaussians in depth
    order (``order``; the float32 depth's bit pattern as the key: depths are > 0, so their bit
    patterns sort like the values; culled Gaussians, depth 0, come first and bin nowhere).
-2. ``count_tiles``, the j-th thread for Gaussian ``order[j]``: tiles covered by its screen rectangle
-   (int64: 3M Gaussians times dozens of tiles overflows int32); with ``exact`` only the tiles of that
-   rectangle that the Gaussian's ellipse at the alpha threshold reaches (``reaches_tile``,
-   Speedy-Splat's AccuTile): a thin diagonal Gaussian touches a band of tiles, not its whole
-   bounding square. The answers for a rectangle of up to MASK_TILES tiles are kept as a bit mask,
-   so step 4 does not test again.
+2. ``count_tiles``, a thread a Gaussian in index order (its reads coalesced, where depth order
+   would gather each field from a random row): the tiles covered by its screen rectangle; with
+   ``exact`` only the tiles of that rectangle that the Gaussian's ellipse at the alpha threshold
+   reaches (``reaches_tile``, Speedy-Splat's AccuTile): a thin diagonal Gaussian touches a band of
+   tiles, not its whole bounding square. The answers for a rectangle of up to MASK_TILES tiles are
+   kept as a bit mask, so step 4 does not test again. ``depth_ordered_counts`` then gathers the
+   counts into depth order (int64: 3M Gaussians times dozens of tiles overflows int32).
 3. inclusive prefix sum of the counts in depth order (``wp.utils.array_scan``): its last entry is the
    total, read on the host (the render's one synchronisation); the j-th writes at ``ends[j] - counts[j]``.
 4. ``emit_intersections``: one 32-bit key per (Gaussian, tile), the tile id, in depth order.
@@ -152,7 +153,6 @@ def depth_order_keys(depth_bits: wp.array(dtype=wp.int32), keys: wp.array(dtype=
 
 @wp.kernel
 def count_tiles(
-    order: wp.array(dtype=wp.int32),
     means2d: wp.array(dtype=wp.vec2),
     radii: wp.array(dtype=wp.vec2i),
     conics: wp.array(dtype=wp.vec3),
@@ -162,15 +162,14 @@ def count_tiles(
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
-    counts: wp.array(dtype=wp.int64),
+    tile_counts: wp.array(dtype=wp.int32),
     masks: wp.array(dtype=wp.int64),
 ):
-    """counts[j]: the tiles Gaussian i = order[j] is binned to; with ``exact``, masks[i]: which tiles
-    of its rectangle (bit (ty − y0)·width + (tx − x0)) where ``masked`` keeps them, else 0."""
-    j = wp.tid()
-    i = order[j]
+    """tile_counts[i]: the tiles Gaussian i is binned to; with ``exact``, masks[i]: which tiles of
+    its rectangle (bit (ty − y0)·width + (tx − x0)) where ``masked`` keeps them, else 0."""
+    i = wp.tid()
     r = radii[i]
-    n = wp.int64(0)
+    n = int(0)
     if r[0] > 0 and r[1] > 0:
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
         if exact != 0:
@@ -183,14 +182,22 @@ def count_tiles(
                 for ty in range(rect[1], rect[3]):
                     for tx in range(rect[0], rect[2]):
                         if reaches_tile(e, tx, ty, tile_size):
-                            n += wp.int64(1)
+                            n += 1
                             if keep:
                                 mask = mask | (wp.int64(1) << wp.int64(b))
                         b += 1
             masks[i] = mask
         else:
-            n = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
-    counts[j] = n
+            n = (rect[2] - rect[0]) * (rect[3] - rect[1])
+    tile_counts[i] = n
+
+
+@wp.kernel
+def depth_ordered_counts(order: wp.array(dtype=wp.int32), tile_counts: wp.array(dtype=wp.int32),
+                         counts: wp.array(dtype=wp.int64)):
+    """counts[j] = tile_counts[order[j]]: the counts in depth order, for the prefix sum."""
+    j = wp.tid()
+    counts[j] = wp.int64(tile_counts[order[j]])
 
 
 @wp.kernel

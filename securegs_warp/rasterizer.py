@@ -395,7 +395,8 @@ class RenderPlan:
         # The depth sort's keys and values (Gaussian ids in depth order), twice N as the sort needs.
         self.depth_keys = torch.empty(max(2 * n, 2), device=tdev, dtype=torch.int32)
         self.order = torch.empty(max(2 * n, 2), device=tdev, dtype=torch.int32)
-        self.counts = torch.empty(n, device=tdev, dtype=torch.int64)
+        self.tile_counts = torch.empty(n, device=tdev, dtype=torch.int32)  # in index order
+        self.counts = torch.empty(n, device=tdev, dtype=torch.int64)  # in depth order
         self.ends = torch.empty(n, device=tdev, dtype=torch.int64)
         self.tile_masks = torch.empty(n, device=tdev, dtype=torch.int64)
         # Without gradients (no_grad, or no input that needs one) nothing is allocated for them.
@@ -428,6 +429,7 @@ class RenderPlan:
                 "last": _wp(self.last, wp.int32),
                 "depth_keys": _wp(self.depth_keys, wp.int32),
                 "order": _wp(self.order, wp.int32),
+                "tile_counts": _wp(self.tile_counts, wp.int32),
                 "counts": _wp(self.counts, wp.int64),
                 "ends": _wp(self.ends, wp.int64),
                 "tile_masks": _wp(self.tile_masks, wp.int64),
@@ -477,13 +479,14 @@ class RenderPlan:
         wp.launch(**self._projection)
         if self.n == 0:
             return
+        wp.launch(binning.count_tiles, dim=self.n,
+                  inputs=[w["means2d"], w["radii"], *self._overlap(), opts.tile_size, self.tiles_x, self.tiles_y],
+                  outputs=[w["tile_counts"], w["tile_masks"]])
         wp.launch(binning.depth_order_keys, dim=self.n, inputs=[w["depth_bits"]], outputs=[w["depth_keys"], w["order"]])
         # Depths are >= 0, so their bit patterns' sign bit is clear.
         wp.utils.radix_sort_pairs(w["depth_keys"], w["order"], self.n, end_bit=31)
-        wp.launch(binning.count_tiles, dim=self.n,
-                  inputs=[w["order"], w["means2d"], w["radii"], *self._overlap(), opts.tile_size, self.tiles_x,
-                          self.tiles_y],
-                  outputs=[w["counts"], w["tile_masks"]])
+        wp.launch(binning.depth_ordered_counts, dim=self.n, inputs=[w["order"], w["tile_counts"]],
+                  outputs=[w["counts"]])
         wp.utils.array_scan(w["counts"], w["ends"], inclusive=True)
 
     def _overlap(self):
