@@ -13,9 +13,7 @@ Pipeline (driven by ``securegs_warp.rasterizer``):
    counts into depth order (int64: 3M Gaussians times dozens of tiles overflows int32).
 3. inclusive prefix sum of the counts in depth order (``wp.utils.array_scan``): its last entry is the
    total, read on the host (the render's one synchronisation); the j-th writes at ``ends[j] - counts[j]``.
-4. ``gaussian_starts`` scatters each Gaussian's start (``ends[j] - counts[j]``) to its index, and
-   ``emit_intersections``, a thread a Gaussian in index order, writes one 32-bit key per (Gaussian,
-   tile), the tile id, there: the list is in depth order.
+4. ``emit_intersections``: one 32-bit key per (Gaussian, tile), the tile id, in depth order.
 5. ``wp.utils.radix_sort_pairs`` on the tile ids' bits only. It is stable, so each tile's run keeps
    the depth order (equal depths in Gaussian order, as step 1 is stable too): the same lists as one
    sort of 64-bit (tile, depth) keys, for a sort of N 32-bit keys and one of M keys of a few passes
@@ -203,24 +201,16 @@ def depth_ordered_counts(order: wp.array(dtype=wp.int32), tile_counts: wp.array(
 
 
 @wp.kernel
-def gaussian_starts(order: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int64), ends: wp.array(dtype=wp.int64),
-                    starts: wp.array(dtype=wp.int64)):
-    """starts[order[j]] = ends[j] − counts[j]: where Gaussian order[j]'s intersections begin, indexed
-    by Gaussian, so that ``emit_intersections`` reads it in index order."""
-    j = wp.tid()
-    starts[order[j]] = ends[j] - counts[j]
-
-
-@wp.kernel
 def emit_intersections(
+    order: wp.array(dtype=wp.int32),
     means2d: wp.array(dtype=wp.vec2),
     radii: wp.array(dtype=wp.vec2i),
     conics: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
     alpha_min: float,
     exact: int,
-    tile_counts: wp.array(dtype=wp.int32),
-    starts: wp.array(dtype=wp.int64),
+    counts: wp.array(dtype=wp.int64),
+    ends: wp.array(dtype=wp.int64),
     masks: wp.array(dtype=wp.int64),
     tile_size: int,
     tiles_x: int,
@@ -229,14 +219,13 @@ def emit_intersections(
     keys: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.int32),
 ):
-    """Gaussian i's (tile id, i) pairs from ``starts[i]`` on (see ``count_tiles``), a thread a
-    Gaussian in index order: its reads are coalesced, and the positions it writes are the depth
-    order's."""
-    i = wp.tid()
+    """Gaussian i = order[j]'s (tile id, i) pairs at ``ends[j] - counts[j]`` on (see ``count_tiles``)."""
+    j = wp.tid()
+    i = order[j]
     r = radii[i]
-    if r[0] > 0 and r[1] > 0 and tile_counts[i] > 0:
+    if r[0] > 0 and r[1] > 0 and counts[j] > wp.int64(0):
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
-        k = starts[i]
+        k = ends[j] - counts[j]
         from_mask = exact != 0 and masked(rect)
         mask = wp.int64(0)
         e = Ellipse()

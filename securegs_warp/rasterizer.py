@@ -398,7 +398,6 @@ class RenderPlan:
         self.tile_counts = torch.empty(n, device=tdev, dtype=torch.int32)  # in index order
         self.counts = torch.empty(n, device=tdev, dtype=torch.int64)  # in depth order
         self.ends = torch.empty(n, device=tdev, dtype=torch.int64)
-        self.starts = torch.empty(n, device=tdev, dtype=torch.int64)  # in index order
         self.tile_masks = torch.empty(n, device=tdev, dtype=torch.int64)
         # Without gradients (no_grad, or no input that needs one) nothing is allocated for them.
         g = with_grads
@@ -433,7 +432,6 @@ class RenderPlan:
                 "tile_counts": _wp(self.tile_counts, wp.int32),
                 "counts": _wp(self.counts, wp.int64),
                 "ends": _wp(self.ends, wp.int64),
-                "starts": _wp(self.starts, wp.int64),
                 "tile_masks": _wp(self.tile_masks, wp.int64),
                 "depth_bits": wp.from_torch(o["depths"].view(torch.int32), dtype=wp.int32),
                 # Allocated by torch, like every buffer here: in order on torch's stream.
@@ -517,10 +515,8 @@ class RenderPlan:
         tile_bits = max(1, int(self.n_tiles).bit_length())
         if padded:
             wp.launch(binning.pad_keys, dim=count, inputs=[w["ends"], self.n_tiles], outputs=[self.keys])
-        wp.launch(binning.gaussian_starts, dim=self.n, inputs=[w["order"], w["counts"], w["ends"]],
-                  outputs=[w["starts"]])
         wp.launch(binning.emit_intersections, dim=self.n,
-                  inputs=[w["means2d"], w["radii"], *self._overlap(), w["tile_counts"], w["starts"],
+                  inputs=[w["order"], w["means2d"], w["radii"], *self._overlap(), w["counts"], w["ends"],
                           w["tile_masks"], opts.tile_size, self.tiles_x, self.tiles_y, self.capacity],
                   outputs=[self.keys, self.values])
         wp.utils.radix_sort_pairs(self.keys, self.values, count, end_bit=tile_bits)
