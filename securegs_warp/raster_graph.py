@@ -236,7 +236,7 @@ def _static_inputs(inputs: dict, checked: dict):
     wide = [name for name, key in checked.items() if inputs[key].dtype == torch.float32]
     names = tuple(wide) + tuple(name for name in checked if name not in wide)
     sizes = [-(-inputs[checked[name]].numel() // 4) for name in wide]  # in vec4s
-    arena = torch.zeros(max(sum(sizes), 1), 4, device=device)
+    arena = torch.zeros(max(sum(sizes), 1), 4, device=device, dtype=torch.float32)
     static, start = {}, 0
     for name, size in zip(wide, sizes):
         t = inputs[checked[name]]

@@ -144,7 +144,7 @@ def test_complete_raises_for_a_non_finite_input_naming_it():
     ("background", (0,), float("inf"), {}, "background"), ("viewmat", (0, 3), float("nan"), {}, "viewmat"),
     ("K", (0, 0), float("inf"), {}, "K"),
     # Finite in float32, infinite in the float16 table the blending reads.
-    ("colors", (1, 2), 7e4, {"color_storage": "float16"}, r"colors \(as float16"),
+    ("colors", (1, 2), 7e4, {"color_storage": "float16"}, r"colors \(as float16: \|value\| > 65504\)"),
 ])
 def test_each_checked_input_is_named_by_a_replay(name, index, value, options, match):
     """The replay's own check (a kernel in its graph, float32 and float16 tables): a render of the
@@ -157,23 +157,42 @@ def test_each_checked_input_is_named_by_a_replay(name, index, value, options, ma
     assert complete(random_scene(17, n=70, **options))
     bad = random_scene(17, n=70, **options)
     getattr(bad, name)[index] = value
-    with pytest.raises(ValueError, match=match):
+    # Anchored: the bad input alone is named.
+    with pytest.raises(ValueError, match=rf"in: {match}$"):
         complete(bad)
 
 
-def test_an_unused_output_has_no_gradient_to_read():
-    """A loss of the image alone: alpha's and depth's gradients reach the op as None."""
-    scene = random_scene(21, n=70)
-    grads = []
-    for capture in (False, True, True):
+@pytest.mark.parametrize("options", [{}, {"gather": "fields"}, {"color_storage": "float16"}])
+def test_losses_of_different_outputs_on_one_entry(options):
+    """Losses of the image and alpha, of the image alone, then of alpha alone, on one pooled entry: an
+    output the loss does not use reaches the op as None, and its gradient buffer, written by an
+    earlier backward, must not leak into the next one."""
+    scene = random_scene(21, n=70, **options)
+    losses = {"both": lambda image, alpha: image.square().sum() + (3 * alpha).sum(),
+              "image": lambda image, alpha: image.square().sum(),
+              "alpha": lambda image, alpha: alpha.sum()}
+
+    def gradients(capture, loss):
         leaves = {name: getattr(scene, name).clone().to(TEST_DEVICE).requires_grad_(True) for name in DIFF_INPUTS}
-        image, _, _ = rasterize(**leaves, viewmat=scene.viewmat.to(TEST_DEVICE), K=scene.K.to(TEST_DEVICE),
-                                width=scene.width, height=scene.height, capture=capture)
-        image.square().sum().backward()
-        grads.append([leaves[name].grad.cpu() for name in DIFF_INPUTS])
-    for captured in grads[1:]:
-        for x, y in zip(captured, grads[0]):
+        image, alpha, info = rasterize(**leaves, viewmat=scene.viewmat.to(TEST_DEVICE), K=scene.K.to(TEST_DEVICE),
+                                       width=scene.width, height=scene.height, capture=capture, **scene.kwargs)
+        losses[loss](image, alpha).backward()
+        return [leaves[name].grad.cpu() for name in DIFF_INPUTS] + [info["means2d_grad"].cpu()]
+
+    for loss in ("both", "image", "alpha", "both"):
+        for x, y in zip(gradients(True, loss), gradients(False, loss)):
             assert_gradients_close(x, y)
+
+
+def test_a_float64_default_dtype_changes_nothing():
+    """The entry's buffers are float32 whatever torch's default dtype is."""
+    scene = random_scene(22, n=70)
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        assert_same(render(scene, True), render(scene, False))
+    finally:
+        torch.set_default_dtype(default)
 
 
 def test_non_finite_input_raises_naming_it():
