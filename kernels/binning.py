@@ -4,13 +4,14 @@ Pipeline (driven by ``securegs_warp.rasterizer``):
 1. ``depth_order_keys``, then ``wp.utils.radix_sort_pairs`` on 32-bit keys: the Gaussians in depth
    order (``order``; the float32 depth's bit pattern as the key: depths are > 0, so their bit
    patterns sort like the values; culled Gaussians, depth 0, come first and bin nowhere).
-2. ``count_tiles``, a thread a Gaussian in index order (its reads coalesced, where depth order
-   would gather each field from a random row): the tiles covered by its screen rectangle; with
-   ``exact`` only the tiles of that rectangle that the Gaussian's ellipse at the alpha threshold
-   reaches (``reaches_tile``, Speedy-Splat's AccuTile): a thin diagonal Gaussian touches a band of
-   tiles, not its whole bounding square. The answers for a rectangle of up to MASK_TILES tiles are
-   kept as a bit mask, so step 4 does not test again. ``depth_ordered_counts`` then gathers the
-   counts into depth order (int64: 3M Gaussians times dozens of tiles overflows int32).
+2. ``count_tiles`` (it needs no order, and runs before step 1's sort), a thread a Gaussian in index
+   order (its reads coalesced, where depth order would gather each field from a random row): the
+   tiles covered by its screen rectangle; with ``exact`` only the tiles of that rectangle that the
+   Gaussian's ellipse at the alpha threshold reaches (``reaches_tile``, Speedy-Splat's AccuTile): a
+   thin diagonal Gaussian touches a band of tiles, not its whole bounding square. The answers for a
+   rectangle of up to MASK_TILES tiles are kept as a bit mask, so step 4 does not test again.
+   ``depth_ordered_counts`` then gathers the counts into depth order (int64: 3M Gaussians times
+   dozens of tiles overflows int32).
 3. inclusive prefix sum of the counts in depth order (``wp.utils.array_scan``): its last entry is the
    total, read on the host (the render's one synchronisation); the j-th writes at ``ends[j] - counts[j]``.
 4. ``emit_intersections``: one 32-bit key per (Gaussian, tile), the tile id, in depth order.

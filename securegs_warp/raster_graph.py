@@ -10,7 +10,8 @@ the CPU the same launches run directly.
 The eager op learns the intersection count and the inputs' finiteness before it sorts (one host
 synchronisation). A replay cannot: its graph checks the inputs and writes both into one status
 buffer, copied to host memory asynchronously, and the next forward of the same entry reads it after
-waiting for that earlier forward only (not for the work queued since). A non-finite input raises there. A count past the capacity (the render lacked some
+waiting for that earlier forward only (not for the work queued since). A non-finite input raises
+there. A count past the capacity (the render lacked some
 intersections) grows that entry's capacity for the renders to come, and raises unless the caller
 already asked whether that render was complete (``info["complete"]``, which itself raises for a
 non-finite input): a training loop that asks can drop the step instead of stopping
@@ -174,10 +175,12 @@ class _Captured:
     def backward(self, grads, means2d_grad: torch.Tensor) -> list:
         """The inputs' gradients (fresh tensors) from the output gradients (image, alpha, depth; None
         for an output the loss does not use); adds dL/d means2d into ``means2d_grad``."""
-        given = [(buffer, g) for buffer, g in zip(self.cotangents, grads) if g is not None]
+        given = []
         for buffer, g in zip(self.cotangents, grads):
             if g is None:
                 buffer.zero_()
+            else:
+                given.append((buffer, g))
         if given:
             torch._foreach_copy_(*map(list, zip(*given)))
         self._run("backward", self._backward_ops)
