@@ -278,8 +278,7 @@ def input_gradients(call, scene: dict, grads) -> dict:
     renders ``scene``'s leaf tensors); the leaves' .grad is cleared before and after."""
     for t in scene.values():
         t.grad = None
-    image, alpha = call()
-    (image * grads[0]).sum().add_((alpha * grads[1]).sum()).backward()
+    render_call(call, True, grads)()
     out = {name: t.grad.clone() for name, t in scene.items()}
     for t in scene.values():
         t.grad = None
