@@ -22,6 +22,8 @@ import torch
 
 from .config import SecureConfig, apply_overrides
 from .io.atomic import atomic_write
+from .io.gs_ply import read_vertex_ply, vertex_columns
+from .runs import RunFolder
 from .secure.security import exposure
 from .strategies import MODES
 from .train.base import psnr_label
@@ -32,6 +34,9 @@ BASELINE = "Scaffold-GS baseline"
 SCENE_AND_BUDGET = ("hidden", "placement", "width", "height", "iterations")
 # anchor_clouds.npz holds the scene's points beside the models' anchors (for the plots); not models.
 SCENE_ARRAYS = ("hidden_points", "scene_points")
+# The SceneSpec fields that say what is hidden and where: a plain model never sees them.
+HIDDEN_SCENE_FIELDS = ("hidden", "level", "hidden_position", "hidden_size", "hidden_yaw", "hidden_up",
+                       "hidden_placement")
 COLUMNS = ("psnr_public", "psnr_public_off_hidden", "psnr_public_on_hidden", "ssim_public", "psnr_hidden",
            "ssim_hidden", "hidden_learnt", "bit_accuracy", "bit_accuracy_on_baseline", "fps_public",
            "fps_public_and_hidden", "size_mb", "anchors", "train_seconds", "nonfinite_steps", "incomplete_steps")
@@ -53,9 +58,13 @@ def parse_variant(text: str, base: SecureConfig) -> tuple[str, SecureConfig]:
         if not sep or not name or not value:
             raise ValueError(f"variant {text!r}: option {option!r} is not FIELD=VALUE")
         overrides[name] = value
-    config = apply_overrides(base, overrides)
-    notes = ([] if mode == "rdo" else [mode]) + options
-    return "SecureGS" + (f" ({', '.join(notes)})" if notes else ""), config
+    return variant_label(mode, options), apply_overrides(base, overrides)
+
+
+def variant_label(mode: str, options=()) -> str:
+    """A SecureGS model's row label: its density mode (none for the paper's rdo) and options."""
+    notes = ([] if mode == "rdo" else [mode]) + list(options)
+    return "SecureGS" + (f" ({', '.join(notes)})" if notes else "")
 
 
 def train(trainer, label: str) -> dict:
@@ -173,6 +182,27 @@ def read_report(folder: Path) -> tuple[dict, dict]:
     if missing:
         raise ValueError(f"{folder}: anchor_clouds.npz lacks the anchors of {', '.join(missing)}")
     return report, clouds
+
+
+def read_run_anchors(folder) -> tuple[str, str, np.ndarray]:
+    """(cover, label, anchor positions [N, 3] float64) of a ``securegs train`` or ``securegs hide``
+    run folder. cover: what a plain model's training depends on, as sorted JSON (the scene less
+    HIDDEN_SCENE_FIELDS, and the training config with its seed), so that a plain run and a container
+    trained on the same views for as long with the same seed share it; label: BASELINE for a plain
+    run, ``variant_label`` of its density mode for a container. ValueError naming the folder when it
+    is no run folder or its point cloud is unreadable."""
+    run = RunFolder(folder)
+    try:
+        config = run.read_config()
+        scene = {k: v for k, v in config["scene"].items() if k not in HIDDEN_SCENE_FIELDS}
+        cover = json.dumps({"scene": scene, "train": config["train"]}, sort_keys=True)
+        secure = config.get("secure")
+        label = BASELINE if secure is None else variant_label(secure["strategy"]["mode"])
+        path = run.model / "point_cloud.ply"
+        xyz = vertex_columns(path, read_vertex_ply(path), ("x", "y", "z")).astype(np.float64)
+    except (OSError, KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{folder}: not a readable securegs train / hide run ({e})") from None
+    return cover, label, xyz
 
 
 def write_report(out: Path, meta: dict, rows: dict) -> str:

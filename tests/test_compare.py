@@ -85,3 +85,70 @@ def test_read_report_reads_what_secure_vs_baseline_writes(tmp_path):
         read_report(tmp_path)
     with pytest.raises(ValueError, match="not a secure_vs_baseline.py output folder"):
         read_report(tmp_path / "nothing")
+
+
+def _run_folder(path, xyz, seed, hidden=None, mode=None, iterations=400):
+    """A minimal securegs train (mode None) or hide run folder: config.json and the point cloud's
+    positions, all that ``read_run_anchors`` reads."""
+    import json
+
+    from securegs_warp.config import RunConfig, SceneSpec, TrainConfig, to_dict
+    from securegs_warp.io.gs_ply import write_vertex_ply
+    secure = None if mode is None else apply_overrides(SecureConfig(), {"strategy.mode": mode})
+    config = RunConfig(scene=SceneSpec(hidden=hidden), train=TrainConfig(iterations=iterations, seed=seed),
+                       secure=secure)
+    (path / ("model" if mode is None else "public")).mkdir(parents=True)
+    (path / "config.json").write_text(json.dumps(to_dict(config)))
+    write_vertex_ply(path / ("model" if mode is None else "public") / "point_cloud.ply", ("x", "y", "z"), xyz)
+    return path
+
+
+def test_read_run_anchors_gives_a_plain_run_and_its_containers_one_cover(tmp_path):
+    from securegs_warp.compare import BASELINE, read_run_anchors
+    xyz = np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32)
+    plain = read_run_anchors(_run_folder(tmp_path / "plain", xyz, seed=3))
+    mug = read_run_anchors(_run_folder(tmp_path / "mug", xyz, seed=3, hidden="mug", mode="cover"))
+    rdo = read_run_anchors(_run_folder(tmp_path / "rdo", xyz, seed=3, hidden="bunny.obj", mode="rdo"))
+    assert plain[1] == BASELINE and mug[1] == "SecureGS (cover)" and rdo[1] == "SecureGS"
+    assert plain[0] == mug[0] == rdo[0]  # the hidden object is no part of the cover
+    assert read_run_anchors(_run_folder(tmp_path / "s4", xyz, seed=4))[0] != plain[0]
+    assert read_run_anchors(_run_folder(tmp_path / "long", xyz, seed=3, iterations=800))[0] != plain[0]
+    np.testing.assert_array_equal(plain[2], xyz.astype(np.float64))
+    with pytest.raises(ValueError, match="nothing: not a readable securegs train / hide run"):
+        read_run_anchors(tmp_path / "nothing")
+    (tmp_path / "mug" / "public" / "point_cloud.ply").write_bytes(b"not a ply")
+    with pytest.raises(ValueError, match="mug: not a readable securegs train / hide run"):
+        read_run_anchors(tmp_path / "mug")
+
+
+def test_audit_auc_script_pairs_run_folders_by_cover(tmp_path):
+    """scripts/audit_auc.py over train / hide run folders: one run per cover, the containers scored
+    against the other covers' plain models only, and a container without its plain model refused."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    rng = np.random.default_rng(1)
+    folders = []
+    for seed in range(3):
+        scene = rng.uniform(-1, 1, size=(400, 3)).astype(np.float32)
+        # The containers carry a dense clump: the audit must find them more suspicious (AUC 1).
+        clump = rng.normal(scale=0.01, size=(120, 3)).astype(np.float32) + 0.5
+        folders += [_run_folder(tmp_path / f"plain_s{seed}", scene, seed),
+                    _run_folder(tmp_path / f"hide_s{seed}", np.concatenate([scene, clump]), seed, "mug", "cover")]
+    script = Path(__file__).resolve().parents[1] / "scripts" / "audit_auc.py"
+    out = tmp_path / "auc.json"
+    done = subprocess.run([sys.executable, str(script), *map(str, folders), "--with-reference", "--json", str(out)],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text())
+    # Three covers: each model against the two other covers' plain models.
+    assert len(result["SecureGS (cover)"]["scores"]) == len(result["Scaffold-GS baseline"]["scores"]) == 6
+    assert result["SecureGS (cover)"]["auc"] == 1.0
+    lone = _run_folder(tmp_path / "hide_s9", np.zeros((10, 3), np.float32), 9, "mug", "cover")
+    done = subprocess.run([sys.executable, str(script), str(folders[0]), str(lone)], capture_output=True, text=True)
+    assert done.returncode != 0 and "hide_s9: no plain model of that scene, seed and budget" in done.stderr
+    twin = _run_folder(tmp_path / "again_s0", np.zeros((10, 3), np.float32), 0, "bunny.obj", "cover")
+    done = subprocess.run([sys.executable, str(script), *map(str, folders), str(twin)], capture_output=True, text=True)
+    assert done.returncode != 0 and "a second 'SecureGS (cover)'" in done.stderr and "hide_s0" in done.stderr
