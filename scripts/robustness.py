@@ -80,7 +80,11 @@ def main():
     sweep(models, views, scene, {name: SWEEP[name] for name in args.attacks.split(",")}, seed=args.seed,
           train=configs[0].train, on_row=report, draws=args.draws)
     print(write_sweep(out, rows, meta))
-    plot_sweep(out / "robustness.png", rows)
+    try:
+        plot_sweep(out / "robustness.png", rows)
+    except ImportError:
+        print("no plot: matplotlib is not installed (pip install -e \".[plots]\")")
+        return
     print(f"wrote {out / 'robustness.png'}")
 
 
