@@ -1,0 +1,234 @@
+"""A study of hiding cases: per case a plain model and a container of one seed, the audit, the attacks;
+then one table and the audit's detection AUC over all cases. Cases run side by side over the given
+devices (each in its own processes), and a rerun picks up where an interrupted one stopped.
+
+A case is ``OBJECT:PLACEMENT:SEED[:UP]``: a built-in object name or a mesh file, ``stand`` (mostly in
+empty space), ``sink`` (half inside a host object) or ``float``, the training seed, and a mesh file's
+up axis (z unless given). Give each case its own seed: the plain models are then distinct covers,
+and each container is audited against the plain models of the other cases only.
+
+Per case, in OUT/NAME (NAME = object_placement_sSEED):
+    securegs train FLAGS --seed SEED --out OUT/NAME/plain
+    securegs hide FLAGS --seed SEED --hide OBJECT --placement PLACEMENT [--hidden-up UP] --out OUT/NAME/hide
+    securegs audit OUT/NAME/hide/public --reference OUT/NAME/plain/model --key OUT/NAME/hide/key.safetensors --json
+    python scripts/robustness.py OUT/NAME/hide --attacks ATTACKS --draws DRAWS --out OUT/NAME/robustness
+Then OUT/study.md and OUT/study.json: one row per case and the AUCs of ``scripts/audit_auc.py``.
+
+    python scripts/hiding_study.py --case mug:stand:0 --case mug:sink:1 --out runs/study      # the CPU
+    python scripts/hiding_study.py --width 1920 --height 1080 --iterations 4000 --devices cuda:0,cuda:1 \\
+        --per-device 2 --case mug:stand:5 --case ogre.obj:stand:8:y --case mug:sink:13 --out runs/study1080
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from securegs_warp.compare import BASELINE, read_run_anchors
+from securegs_warp.data.meshes import HIDDEN_OBJECTS, MESH_SUFFIXES
+from securegs_warp.io.atomic import atomic_write
+from securegs_warp.robustness import SWEEP
+from securegs_warp.secure.steganalysis import auc_by_model
+
+PLACEMENTS = ("stand", "sink", "float")
+SCRIPTS = Path(__file__).resolve().parent
+# What a row reports of each attack in the sweep (the others stay in the case's robustness.md).
+REPORTED = ("prune-random:0.2", "prune-random:0.3", "noise-feat:0.1", "purify:0.2")
+
+
+def parse_case(text: str) -> dict:
+    """``OBJECT:PLACEMENT:SEED[:UP]`` -> {object, placement, seed, up, name}; SystemExit naming what is wrong."""
+    parts = text.split(":")
+    if len(parts) not in (3, 4):
+        raise SystemExit(f"--case {text!r}: expected OBJECT:PLACEMENT:SEED[:UP]")
+    obj, placement, seed, up = (parts + ["z"])[:4]
+    if placement not in PLACEMENTS:
+        raise SystemExit(f"--case {text!r}: placement must be one of {', '.join(PLACEMENTS)}, got {placement!r}")
+    if not seed.isdigit():
+        raise SystemExit(f"--case {text!r}: the seed must be a non-negative integer, got {seed!r}")
+    if up not in ("y", "z"):
+        raise SystemExit(f"--case {text!r}: the up axis must be y or z, got {up!r}")
+    # Checked here rather than when the hide step fails, after the plain model has trained.
+    if Path(obj).suffix.lower() in MESH_SUFFIXES:
+        if not Path(obj).is_file():
+            raise SystemExit(f"--case {text!r}: no mesh file {obj}")
+        obj = str(Path(obj).resolve())
+    elif obj not in HIDDEN_OBJECTS:
+        raise SystemExit(f"--case {text!r}: the object must be one of {sorted(HIDDEN_OBJECTS)} or a mesh file "
+                         f"({', '.join(MESH_SUFFIXES)}), got {obj!r}")
+    return {"object": obj, "placement": placement, "seed": int(seed), "up": up,
+            "name": f"{Path(obj).stem}_{placement}_s{seed}"}
+
+
+def steps(case: dict, run: Path, flags: list[str], attacks: str, draws: int,
+          device: str) -> list[tuple[str, Path, list[str]]]:
+    """The case's commands in order: (name, the file whose presence says it is done, command)."""
+    cli = [sys.executable, "-m", "securegs_warp.cli"]
+    on = ["--device", device, "--seed", str(case["seed"])]
+    hidden = ["--hide", case["object"], "--placement", case["placement"], "--hidden-up", case["up"]]
+    plain, hide = run / "plain", run / "hide"
+
+    def again(folder):  # an interrupted training resumes; a folder without a checkpoint starts over
+        return ["--resume"] if (folder / "checkpoint.pt").is_file() else ["--force"]
+
+    return [
+        ("plain", plain / "metrics.json", cli + ["train", *flags, *on, "--out", str(plain), *again(plain)]),
+        ("hide", hide / "metrics.json", cli + ["hide", *flags, *on, *hidden, "--out", str(hide), *again(hide)]),
+        ("audit", run / "audit.json", cli + ["audit", str(hide / "public"), "--reference", str(plain / "model"),
+                                             "--key", str(hide / "key.safetensors"), "--json"]),
+        ("robustness", run / "robustness" / "robustness.json",
+         [sys.executable, str(SCRIPTS / "robustness.py"), str(hide), "--attacks", attacks, "--draws", str(draws),
+          "--device", device, "--out", str(run / "robustness")]),
+    ]
+
+
+def run_case(case: dict, out: Path, flags: list[str], attacks: str, draws: int, device: str) -> str | None:
+    """Every step of one case not done yet, on ``device``; None, or what failed and where its log is."""
+    run = out / case["name"]
+    run.mkdir(parents=True, exist_ok=True)
+    # What the case's results depend on: a rerun with other settings must not reuse them.
+    settings = json.dumps({"case": case, "flags": flags, "attacks": attacks, "draws": draws}, sort_keys=True)
+    recorded = run / "case.json"
+    if recorded.is_file() and recorded.read_text() != settings:
+        return f"{case['name']}: {run} holds a run of other settings ({recorded}); give another --out"
+    atomic_write(recorded, lambda f: f.write(settings.encode()))
+    env = dict(os.environ)
+    if device.startswith("cuda:"):  # one GPU a process, which sees only its own
+        env["CUDA_VISIBLE_DEVICES"] = device.split(":", 1)[1]
+        device = "cuda"
+    for name, done, command in steps(case, run, flags, attacks, draws, device):
+        if done.is_file():
+            continue
+        log = run / f"{name}.log"
+        with open(log, "w") as f:
+            if name == "audit":  # its one JSON object is the result: written whole or not at all
+                result = subprocess.run(command, stdout=subprocess.PIPE, stderr=f, env=env)
+                if result.returncode == 0:
+                    atomic_write(done, lambda g: g.write(result.stdout))
+            else:
+                result = subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, env=env)
+        if result.returncode != 0:
+            return f"{case['name']}: {name} failed (exit {result.returncode}); see {log}"
+    return None
+
+
+def case_row(case: dict, run: Path) -> dict:
+    """The table's row of one finished case."""
+    plain = json.loads((run / "plain" / "metrics.json").read_text())
+    hide = json.loads((run / "hide" / "metrics.json").read_text())
+    audit = json.loads((run / "audit.json").read_text())
+    sweep = {s["spec"]: s for s in json.loads((run / "robustness" / "robustness.json").read_text())["summary"]}
+    return {"case": case["name"], "cover_plain": plain["psnr"], "cover": hide["psnr_public"],
+            "cover_change": hide["psnr_public"] - plain["psnr"], "hidden": hide.get("psnr_hidden"),
+            "hidden_ssim": hide.get("ssim_hidden"), "bits": hide.get("bit_accuracy"),
+            "size_ratio": hide["size_mb_public"] / plain["size_mb"], "density_ratio": audit.get("density_ratio"),
+            "coverage": audit.get("coverage"), "coverage_plain": audit.get("reference_coverage"),
+            "audit_score": audit["score"],
+            "attacks": {spec: {k: sweep[spec][k] for k in ("delta_mean", "delta_worst", "bit_accuracy_worst")}
+                        for spec in REPORTED if spec in sweep}}
+
+
+def markdown(rows: list[dict], aucs: dict) -> str:
+    fmt = lambda v, f="{:.2f}": "–" if v is None else f.format(v)  # noqa: E731
+    specs = [s for s in REPORTED if any(s in r["attacks"] for r in rows)]
+    head = ["case", "plain cover dB", "cover dB (Δ)", "hidden dB / SSIM", "bits", "release ÷ plain", "density ratio",
+            "coverage (plain)", "audit score"] + [f"{s}: mean / worst dB, bits" for s in specs]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for r in rows:
+        cells = [r["case"], fmt(r["cover_plain"]), f"{fmt(r['cover'])} ({fmt(r['cover_change'], '{:+.2f}')})",
+                 f"{fmt(r['hidden'])} / {fmt(r['hidden_ssim'], '{:.4f}')}", fmt(r["bits"], "{:.0%}"),
+                 fmt(r["size_ratio"]), fmt(r["density_ratio"]),
+                 f"{fmt(r['coverage'], '{:.3f}')} ({fmt(r['coverage_plain'], '{:.3f}')})", fmt(r["audit_score"], "{:.1f}")]
+        for s in specs:
+            a = r["attacks"].get(s)
+            cells.append("–" if a is None else f"{fmt(a['delta_mean'], '{:+.2f}')} / {fmt(a['delta_worst'], '{:+.2f}')}, "
+                                               f"{fmt(a['bit_accuracy_worst'], '{:.0%}')}")
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "| detection AUC of the audit (0.5: chance) | without a reference | with a reference |", "|---|---|---|"]
+    for subset, pair in aucs.items():
+        lines.append(f"| {subset} | " + " | ".join(fmt(pair.get(k)) for k in ("without", "with")) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def study_aucs(cases: list[dict], out: Path) -> dict:
+    """{subset: {"without", "with"}}: the AUC over every case and over each placement with two or more."""
+    aucs = {}
+    for subset in ("all", *PLACEMENTS):
+        chosen = [c for c in cases if subset == "all" or c["placement"] == subset]
+        if len(chosen) < 2:
+            continue
+        runs, covers = [], []
+        for c in chosen:
+            plain, hide = (read_run_anchors(out / c["name"] / sub) for sub in ("plain", "hide"))
+            runs.append({BASELINE: plain[2], hide[1]: hide[2]})
+            covers.append(plain[0])
+        pair = {}
+        for key, with_reference in (("without", False), ("with", True)):
+            try:
+                result = auc_by_model(runs, BASELINE, with_reference, covers)
+            except ValueError:  # every case of one cover: no reference trained apart
+                continue
+            pair[key] = next(r["auc"] for label, r in result.items() if label != BASELINE)
+        aucs[subset] = pair
+    return aucs
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--case", action="append", required=True, help="OBJECT:PLACEMENT:SEED[:UP], repeatable")
+    ap.add_argument("--width", type=int, default=128)
+    ap.add_argument("--height", type=int, default=96)
+    ap.add_argument("--iterations", type=int, default=400)
+    ap.add_argument("--attacks", default="prune-random,noise-feat",
+                    help=f"attacks of the sweep (scripts/robustness.py; known: {','.join(SWEEP)})")
+    ap.add_argument("--draws", type=int, default=3, help="draws of each random attack")
+    ap.add_argument("--devices", default="cpu", help="comma-separated: cpu, cuda, cuda:N (default: cpu)")
+    ap.add_argument("--per-device", type=int, default=1, help="cases at once on each device")
+    ap.add_argument("--out", default="runs/study")
+    args = ap.parse_args()
+    cases = [parse_case(c) for c in args.case]
+    names = [c["name"] for c in cases]
+    if len(set(names)) != len(names):
+        raise SystemExit(f"two cases share a name: {sorted(n for n in names if names.count(n) > 1)}")
+    unknown = sorted(set(args.attacks.split(",")) - set(SWEEP))
+    if unknown:
+        raise SystemExit(f"unknown attacks {unknown}; known: {', '.join(SWEEP)}")
+    if args.per_device < 1 or args.draws < 1:
+        raise SystemExit("--per-device and --draws must be at least 1")
+    out = Path(args.out)
+    flags = ["--width", str(args.width), "--height", str(args.height), "--iterations", str(args.iterations),
+             "--quiet"]
+    queue, failures, lock = list(cases), [], threading.Lock()
+
+    def worker(device):
+        while True:
+            with lock:
+                if not queue:
+                    return
+                case = queue.pop(0)
+            print(f"{case['name']} on {device}", flush=True)
+            failure = run_case(case, out, flags, args.attacks, args.draws, device)
+            with lock:
+                (failures.append(failure) if failure else print(f"{case['name']} done", flush=True))
+
+    workers = [threading.Thread(target=worker, args=(d,)) for d in args.devices.split(",")
+               for _ in range(args.per_device)]
+    for w in workers:
+        w.start()
+    for w in workers:
+        w.join()
+    if failures:
+        raise SystemExit("\n".join(failures))
+    rows = [case_row(c, out / c["name"]) for c in cases]
+    aucs = study_aucs(cases, out)
+    table = markdown(rows, aucs)
+    atomic_write(out / "study.md", lambda f: f.write(table.encode()))
+    data = json.dumps({"args": vars(args), "rows": rows, "aucs": aucs}, indent=1).encode()
+    atomic_write(out / "study.json", lambda f: f.write(data))
+    print(table)
+
+
+if __name__ == "__main__":
+    main()

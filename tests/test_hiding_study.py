@@ -1,0 +1,50 @@
+"""scripts/hiding_study.py end to end on the CPU at a toy budget: two cases, the table and the AUCs,
+a rerun that reuses what is done and resumes what is not, and the settings guard."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "hiding_study.py"
+TOY = ["--width", "32", "--height", "24", "--iterations", "20", "--attacks", "prune-random", "--draws", "1"]
+
+
+def study(out, *args):
+    return subprocess.run([sys.executable, str(SCRIPT), "--case", "mug:stand:0", "--case", "pawn:sink:1", *TOY,
+                           "--out", str(out), *args], capture_output=True, text=True)
+
+
+def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path):
+    done = study(tmp_path)
+    assert done.returncode == 0, done.stderr + done.stdout
+    result = json.loads((tmp_path / "study.json").read_text())
+    assert [r["case"] for r in result["rows"]] == ["mug_stand_s0", "pawn_sink_s1"]
+    for row in result["rows"]:
+        assert row["bits"] is not None and row["hidden"] is not None and row["audit_score"] >= 0
+        assert set(row["attacks"]) == {"prune-random:0.2", "prune-random:0.3"}
+    # Two covers (seeds 0 and 1): each container against the other's plain model.
+    assert 0.0 <= result["aucs"]["all"]["without"] <= 1.0 and 0.0 <= result["aucs"]["all"]["with"] <= 1.0
+    assert "| mug_stand_s0 |" in (tmp_path / "study.md").read_text()
+
+    plain = tmp_path / "mug_stand_s0" / "plain" / "metrics.json"
+    before = plain.stat().st_mtime_ns
+    (tmp_path / "pawn_sink_s1" / "hide" / "metrics.json").unlink()  # as if interrupted at the end
+    again = study(tmp_path)
+    assert again.returncode == 0, again.stderr + again.stdout
+    assert plain.stat().st_mtime_ns == before  # done: not trained again
+    assert (tmp_path / "pawn_sink_s1" / "hide" / "metrics.json").is_file()
+    assert "resuming" in (tmp_path / "pawn_sink_s1" / "hide.log").read_text()  # from its checkpoint
+
+    other = subprocess.run([sys.executable, str(SCRIPT), "--case", "mug:stand:0", *TOY[:4], "--iterations", "30",
+                            *TOY[6:], "--out", str(tmp_path)], capture_output=True, text=True)
+    assert other.returncode != 0 and "holds a run of other settings" in other.stderr
+
+
+def test_bad_cases_are_refused_before_anything_trains(tmp_path):
+    for case, message in (("teapot:stand:0", "the object must be one of"), ("mug:under:0", "placement must be one of"),
+                          ("mug:stand:x", "the seed must be a non-negative integer"), ("mug:stand", "expected OBJECT"),
+                          ("mug:stand:0:x", "the up axis must be y or z"), ("nothing.obj:stand:0", "no mesh file")):
+        done = subprocess.run([sys.executable, str(SCRIPT), "--case", case, "--out", str(tmp_path)],
+                              capture_output=True, text=True)
+        assert done.returncode != 0 and message in done.stderr, (case, done.stderr)
+    assert not any(tmp_path.iterdir())
