@@ -131,6 +131,7 @@ def case_row(case: dict, run: Path) -> dict:
 
 
 def markdown(rows: list[dict], aucs: dict) -> str:
+    """The cases' table (``case_row``'s rows), then the AUCs' (``study_aucs``)."""
     fmt = lambda v, f="{:.2f}": "–" if v is None else f.format(v)  # noqa: E731
     specs = [s for s in REPORTED if any(s in r["attacks"] for r in rows)]
     head = ["case", "plain cover dB", "cover dB (Δ)", "hidden dB / SSIM", "bits", "release ÷ plain", "density ratio",
@@ -211,7 +212,10 @@ def main():
             print(f"{case['name']} on {device}", flush=True)
             failure = run_case(case, out, flags, args.attacks, args.draws, device)
             with lock:
-                (failures.append(failure) if failure else print(f"{case['name']} done", flush=True))
+                if failure:
+                    failures.append(failure)
+                else:
+                    print(f"{case['name']} done", flush=True)
 
     workers = [threading.Thread(target=worker, args=(d,)) for d in args.devices.split(",")
                for _ in range(args.per_device)]
