@@ -7,20 +7,25 @@ empty space), ``sink`` (half inside a host object) or ``float``, the training se
 up axis (z unless given). Give each case its own seed: the plain models are then distinct covers,
 and each container is audited against the plain models of the other cases only.
 
-Per case, in OUT/NAME (NAME = object_placement_sSEED):
+Per case, in OUT/NAME (NAME = object_placement_sSEED), and per variant (``--variant V="FLAGS"``: extra
+``securegs hide`` flags; none given: the default alone, whose files carry no _V):
     securegs train FLAGS --seed SEED --out OUT/NAME/plain
-    securegs hide FLAGS --seed SEED --hide OBJECT --placement PLACEMENT [--hidden-up UP] --out OUT/NAME/hide
-    securegs audit OUT/NAME/hide/public --reference OUT/NAME/plain/model --key OUT/NAME/hide/key.safetensors --json
-    python scripts/robustness.py OUT/NAME/hide --attacks ATTACKS --draws DRAWS --out OUT/NAME/robustness
-Then OUT/study.md and OUT/study.json: one row per case and the AUCs of ``scripts/audit_auc.py``.
+    securegs hide FLAGS --seed SEED --hide OBJECT --placement PLACEMENT [--hidden-up UP] [V's FLAGS] --out OUT/NAME/hide_V
+    securegs audit OUT/NAME/hide_V/public --reference OUT/NAME/plain/model --key OUT/NAME/hide_V/key.safetensors --json
+    python scripts/robustness.py OUT/NAME/hide_V --attacks ATTACKS --draws DRAWS --out OUT/NAME/robustness_V
+Then OUT/study.md and OUT/study.json: one row per case and variant, and each variant's detection AUC
+(``steganalysis.auc_by_model``, as ``scripts/audit_auc.py`` computes it) over all cases and per placement.
 
     python scripts/hiding_study.py --case mug:stand:0 --case mug:sink:1 --out runs/study      # the CPU
+    python scripts/hiding_study.py --case mug:stand:0 --case mug:stand:1 --variant rdo="--mode rdo"   # and the paper's
     python scripts/hiding_study.py --width 1920 --height 1080 --iterations 4000 --devices cuda:0,cuda:1 \\
         --per-device 2 --case mug:stand:5 --case ogre.obj:stand:8:y --case mug:sink:13 --out runs/study1080
 """
 import argparse
 import json
 import os
+import re
+import shlex
 import subprocess
 import sys
 import threading
@@ -33,6 +38,8 @@ from securegs_warp.robustness import SWEEP
 from securegs_warp.secure.steganalysis import auc_by_model
 
 PLACEMENTS = ("stand", "sink", "float")
+# The variant without extra flags; its folders and files carry no suffix.
+DEFAULT = "default"
 SCRIPTS = Path(__file__).resolve().parent
 # What a row reports of each attack in the sweep (the others stay in the case's robustness.md).
 REPORTED = ("prune-random:0.2", "prune-random:0.3", "noise-feat:0.1", "purify:0.2")
@@ -62,34 +69,57 @@ def parse_case(text: str) -> dict:
             "name": f"{Path(obj).stem}_{placement}_s{seed}"}
 
 
-def steps(case: dict, run: Path, flags: list[str], attacks: str, draws: int,
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """``NAME=FLAGS`` -> (NAME, the flags, split as a shell would); SystemExit naming what is wrong."""
+    name, sep, flags = text.partition("=")
+    if not sep or not re.fullmatch(r"[A-Za-z0-9-]+", name):
+        raise SystemExit(f"--variant {text!r}: expected NAME=FLAGS, NAME of letters, digits and '-'")
+    if name == DEFAULT and flags.strip():
+        raise SystemExit(f"--variant {text!r}: {DEFAULT!r} names the defaults, without flags; name the variant")
+    return name, shlex.split(flags)
+
+
+def suffix(variant: str) -> str:
+    """What a variant's folders and files end with: nothing for DEFAULT."""
+    return "" if variant == DEFAULT else f"_{variant}"
+
+
+def steps(case: dict, run: Path, flags: list[str], variants: dict, attacks: str, draws: int,
           device: str) -> list[tuple[str, Path, list[str]]]:
     """The case's commands in order: (name, the file whose presence says it is done, command)."""
     cli = [sys.executable, "-m", "securegs_warp.cli"]
     on = ["--device", device, "--seed", str(case["seed"])]
     hidden = ["--hide", case["object"], "--placement", case["placement"], "--hidden-up", case["up"]]
-    plain, hide = run / "plain", run / "hide"
+    plain = run / "plain"
 
     def again(folder):  # an interrupted training resumes; a folder without a checkpoint starts over
         return ["--resume"] if (folder / "checkpoint.pt").is_file() else ["--force"]
 
-    return [
-        ("plain", plain / "metrics.json", cli + ["train", *flags, *on, "--out", str(plain), *again(plain)]),
-        ("hide", hide / "metrics.json", cli + ["hide", *flags, *on, *hidden, "--out", str(hide), *again(hide)]),
-        ("audit", run / "audit.json", cli + ["audit", str(hide / "public"), "--reference", str(plain / "model"),
-                                             "--key", str(hide / "key.safetensors"), "--json"]),
-        ("robustness", run / "robustness" / "robustness.json",
-         [sys.executable, str(SCRIPTS / "robustness.py"), str(hide), "--attacks", attacks, "--draws", str(draws),
-          "--device", device, "--out", str(run / "robustness")]),
-    ]
+    out = [("plain", plain / "metrics.json", cli + ["train", *flags, *on, "--out", str(plain), *again(plain)])]
+    for variant, extra in variants.items():
+        end = suffix(variant)
+        hide, robustness = run / f"hide{end}", run / f"robustness{end}"
+        out += [
+            (f"hide{end}", hide / "metrics.json",
+             cli + ["hide", *flags, *on, *hidden, *extra, "--out", str(hide), *again(hide)]),
+            (f"audit{end}", run / f"audit{end}.json",
+             cli + ["audit", str(hide / "public"), "--reference", str(plain / "model"), "--key",
+                    str(hide / "key.safetensors"), "--json"]),
+            (f"robustness{end}", robustness / "robustness.json",
+             [sys.executable, str(SCRIPTS / "robustness.py"), str(hide), "--attacks", attacks, "--draws", str(draws),
+              "--device", device, "--out", str(robustness)]),
+        ]
+    return out
 
 
-def run_case(case: dict, out: Path, flags: list[str], attacks: str, draws: int, device: str) -> str | None:
+def run_case(case: dict, out: Path, flags: list[str], variants: dict, attacks: str, draws: int,
+             device: str) -> str | None:
     """Every step of one case not done yet, on ``device``; None, or what failed and where its log is."""
     run = out / case["name"]
     run.mkdir(parents=True, exist_ok=True)
     # What the case's results depend on: a rerun with other settings must not reuse them.
-    settings = json.dumps({"case": case, "flags": flags, "attacks": attacks, "draws": draws}, sort_keys=True)
+    settings = json.dumps({"case": case, "flags": flags, "variants": variants, "attacks": attacks, "draws": draws},
+                          sort_keys=True)
     recorded = run / "case.json"
     if recorded.is_file() and recorded.read_text() != settings:
         return f"{case['name']}: {run} holds a run of other settings ({recorded}); give another --out"
@@ -98,12 +128,12 @@ def run_case(case: dict, out: Path, flags: list[str], attacks: str, draws: int, 
     if device.startswith("cuda:"):  # one GPU a process, which sees only its own
         env["CUDA_VISIBLE_DEVICES"] = device.split(":", 1)[1]
         device = "cuda"
-    for name, done, command in steps(case, run, flags, attacks, draws, device):
+    for name, done, command in steps(case, run, flags, variants, attacks, draws, device):
         if done.is_file():
             continue
         log = run / f"{name}.log"
         with open(log, "w") as f:
-            if name == "audit":  # its one JSON object is the result: written whole or not at all
+            if name.startswith("audit"):  # its one JSON object is the result: written whole or not at all
                 result = subprocess.run(command, stdout=subprocess.PIPE, stderr=f, env=env)
                 if result.returncode == 0:
                     atomic_write(done, lambda g: g.write(result.stdout))
@@ -114,31 +144,36 @@ def run_case(case: dict, out: Path, flags: list[str], attacks: str, draws: int, 
     return None
 
 
-def case_row(case: dict, run: Path) -> dict:
-    """The table's row of one finished case."""
+def case_rows(case: dict, run: Path, variants) -> list[dict]:
+    """The table's rows of one finished case, one per variant."""
     plain = json.loads((run / "plain" / "metrics.json").read_text())
-    hide = json.loads((run / "hide" / "metrics.json").read_text())
-    audit = json.loads((run / "audit.json").read_text())
-    sweep = {s["spec"]: s for s in json.loads((run / "robustness" / "robustness.json").read_text())["summary"]}
-    return {"case": case["name"], "cover_plain": plain["psnr"], "cover": hide["psnr_public"],
+    rows = []
+    for variant in variants:
+        end = suffix(variant)
+        hide = json.loads((run / f"hide{end}" / "metrics.json").read_text())
+        audit = json.loads((run / f"audit{end}.json").read_text())
+        sweep = {s["spec"]: s for s in json.loads((run / f"robustness{end}" / "robustness.json").read_text())["summary"]}
+        rows.append({
+            "case": case["name"], "variant": variant, "cover_plain": plain["psnr"], "cover": hide["psnr_public"],
             "cover_change": hide["psnr_public"] - plain["psnr"], "hidden": hide.get("psnr_hidden"),
             "hidden_ssim": hide.get("ssim_hidden"), "bits": hide.get("bit_accuracy"),
             "size_ratio": hide["size_mb_public"] / plain["size_mb"], "density_ratio": audit.get("density_ratio"),
             "coverage": audit.get("coverage"), "coverage_plain": audit.get("reference_coverage"),
             "audit_score": audit["score"],
             "attacks": {spec: {k: sweep[spec][k] for k in ("delta_mean", "delta_worst", "bit_accuracy_worst")}
-                        for spec in REPORTED if spec in sweep}}
+                        for spec in REPORTED if spec in sweep}})
+    return rows
 
 
 def markdown(rows: list[dict], aucs: dict) -> str:
-    """The cases' table (``case_row``'s rows), then the AUCs' (``study_aucs``)."""
+    """The cases' table (``case_rows``' rows), then the AUCs' (``study_aucs``)."""
     fmt = lambda v, f="{:.2f}": "–" if v is None else f.format(v)  # noqa: E731
     specs = [s for s in REPORTED if any(s in r["attacks"] for r in rows)]
-    head = ["case", "plain cover dB", "cover dB (Δ)", "hidden dB / SSIM", "bits", "release ÷ plain", "density ratio",
+    head = ["case", "variant", "plain cover dB", "cover dB (Δ)", "hidden dB / SSIM", "bits", "release ÷ plain", "density ratio",
             "coverage (plain)", "audit score"] + [f"{s}: mean / worst dB, bits" for s in specs]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for r in rows:
-        cells = [r["case"], fmt(r["cover_plain"]), f"{fmt(r['cover'])} ({fmt(r['cover_change'], '{:+.2f}')})",
+        cells = [r["case"], r["variant"], fmt(r["cover_plain"]), f"{fmt(r['cover'])} ({fmt(r['cover_change'], '{:+.2f}')})",
                  f"{fmt(r['hidden'])} / {fmt(r['hidden_ssim'], '{:.4f}')}", fmt(r["bits"], "{:.0%}"),
                  fmt(r["size_ratio"]), fmt(r["density_ratio"]),
                  f"{fmt(r['coverage'], '{:.3f}')} ({fmt(r['coverage_plain'], '{:.3f}')})", fmt(r["audit_score"], "{:.1f}")]
@@ -147,14 +182,17 @@ def markdown(rows: list[dict], aucs: dict) -> str:
             cells.append("–" if a is None else f"{fmt(a['delta_mean'], '{:+.2f}')} / {fmt(a['delta_worst'], '{:+.2f}')}, "
                                                f"{fmt(a['bit_accuracy_worst'], '{:.0%}')}")
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "| detection AUC of the audit (0.5: chance) | without a reference | with a reference |", "|---|---|---|"]
-    for subset, pair in aucs.items():
-        lines.append(f"| {subset} | " + " | ".join(fmt(pair.get(k)) for k in ("without", "with")) + " |")
+    lines += ["", "| detection AUC of the audit (0.5: chance) | variant | without a reference | with a reference |",
+              "|---|---|---|---|"]
+    for subset, by_variant in aucs.items():
+        for variant, pair in by_variant.items():
+            lines.append(f"| {subset} | {variant} | " + " | ".join(fmt(pair.get(k)) for k in ("without", "with")) + " |")
     return "\n".join(lines) + "\n"
 
 
-def study_aucs(cases: list[dict], out: Path) -> dict:
-    """{subset: {"without", "with"}}: the AUC over every case and over each placement with two or more."""
+def study_aucs(cases: list[dict], out: Path, variants) -> dict:
+    """{subset: {variant: {"without", "with"}}}: each variant's AUC over every case and over each
+    placement with two or more cases; "with" is left out where the cases share one cover."""
     aucs = {}
     for subset in ("all", *PLACEMENTS):
         chosen = [c for c in cases if subset == "all" or c["placement"] == subset]
@@ -162,17 +200,19 @@ def study_aucs(cases: list[dict], out: Path) -> dict:
             continue
         runs, covers = [], []
         for c in chosen:
-            plain, hide = (read_run_anchors(out / c["name"] / sub) for sub in ("plain", "hide"))
-            runs.append({BASELINE: plain[2], hide[1]: hide[2]})
-            covers.append(plain[0])
-        pair = {}
+            cover, _, plain = read_run_anchors(out / c["name"] / "plain")
+            runs.append({BASELINE: plain, **{v: read_run_anchors(out / c["name"] / f"hide{suffix(v)}")[2]
+                                            for v in variants}})
+            covers.append(cover)
+        pairs = {v: {} for v in variants}
         for key, with_reference in (("without", False), ("with", True)):
             try:
                 result = auc_by_model(runs, BASELINE, with_reference, covers)
             except ValueError:  # every case of one cover: no reference trained apart
                 continue
-            pair[key] = next(r["auc"] for label, r in result.items() if label != BASELINE)
-        aucs[subset] = pair
+            for v in variants:
+                pairs[v][key] = result[v]["auc"]
+        aucs[subset] = pairs
     return aucs
 
 
@@ -182,6 +222,9 @@ def main():
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--height", type=int, default=96)
     ap.add_argument("--iterations", type=int, default=400)
+    ap.add_argument("--variant", action="append", default=[],
+                    help='NAME="FLAGS": extra securegs hide flags of a container kind, repeatable (default: the '
+                         f'defaults alone, named {DEFAULT!r}); e.g. rdo="--mode rdo"')
     ap.add_argument("--attacks", default="prune-random,noise-feat",
                     help=f"attacks of the sweep (scripts/robustness.py; known: {','.join(SWEEP)})")
     ap.add_argument("--draws", type=int, default=3, help="draws of each random attack")
@@ -190,6 +233,9 @@ def main():
     ap.add_argument("--out", default="runs/study")
     args = ap.parse_args()
     cases = [parse_case(c) for c in args.case]
+    variants = dict(parse_variant(v) for v in args.variant) or {DEFAULT: []}
+    if len(variants) != len(args.variant or [DEFAULT]):
+        raise SystemExit("two variants share a name")
     names = [c["name"] for c in cases]
     if len(set(names)) != len(names):
         raise SystemExit(f"two cases share a name: {sorted(n for n in names if names.count(n) > 1)}")
@@ -210,7 +256,7 @@ def main():
                     return
                 case = queue.pop(0)
             print(f"{case['name']} on {device}", flush=True)
-            failure = run_case(case, out, flags, args.attacks, args.draws, device)
+            failure = run_case(case, out, flags, variants, args.attacks, args.draws, device)
             with lock:
                 if failure:
                     failures.append(failure)
@@ -225,8 +271,8 @@ def main():
         w.join()
     if failures:
         raise SystemExit("\n".join(failures))
-    rows = [case_row(c, out / c["name"]) for c in cases]
-    aucs = study_aucs(cases, out)
+    rows = [row for c in cases for row in case_rows(c, out / c["name"], variants)]
+    aucs = study_aucs(cases, out, variants)
     table = markdown(rows, aucs)
     atomic_write(out / "study.md", lambda f: f.write(table.encode()))
     data = json.dumps({"args": vars(args), "rows": rows, "aucs": aucs}, indent=1).encode()

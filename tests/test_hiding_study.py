@@ -1,5 +1,5 @@
-"""scripts/hiding_study.py end to end on the CPU at a toy budget: two cases, the table and the AUCs,
-a rerun that reuses what is done and resumes what is not, and the settings guard."""
+"""scripts/hiding_study.py end to end on the CPU at a toy budget: two cases and two variants, the table
+and the AUCs, a rerun that reuses what is done and resumes what is not, and the settings guard."""
 import json
 import subprocess
 import sys
@@ -11,20 +11,27 @@ TOY = ["--width", "32", "--height", "24", "--iterations", "20", "--attacks", "pr
 
 def study(out, *args):
     return subprocess.run([sys.executable, str(SCRIPT), "--case", "mug:stand:0", "--case", "pawn:sink:1", *TOY,
-                           "--out", str(out), *args], capture_output=True, text=True)
+                           "--variant", "default=", "--variant", "rdo=--mode rdo", "--out", str(out), *args],
+                          capture_output=True, text=True)
 
 
 def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path):
     done = study(tmp_path)
     assert done.returncode == 0, done.stderr + done.stdout
     result = json.loads((tmp_path / "study.json").read_text())
-    assert [r["case"] for r in result["rows"]] == ["mug_stand_s0", "pawn_sink_s1"]
+    assert [(r["case"], r["variant"]) for r in result["rows"]] == [
+        ("mug_stand_s0", "default"), ("mug_stand_s0", "rdo"), ("pawn_sink_s1", "default"), ("pawn_sink_s1", "rdo")]
     for row in result["rows"]:
         assert row["bits"] is not None and row["hidden"] is not None and row["audit_score"] >= 0
         assert set(row["attacks"]) == {"prune-random:0.2", "prune-random:0.3"}
+    # Each variant is its own kind of container: the rdo one trained in the paper's mode.
+    assert '"mode": "rdo"' in (tmp_path / "mug_stand_s0" / "hide_rdo" / "config.json").read_text()
+    assert '"mode": "cover"' in (tmp_path / "mug_stand_s0" / "hide" / "config.json").read_text()
     # Two covers (seeds 0 and 1): each container against the other's plain model.
-    assert 0.0 <= result["aucs"]["all"]["without"] <= 1.0 and 0.0 <= result["aucs"]["all"]["with"] <= 1.0
-    assert "| mug_stand_s0 |" in (tmp_path / "study.md").read_text()
+    for variant in ("default", "rdo"):
+        pair = result["aucs"]["all"][variant]
+        assert 0.0 <= pair["without"] <= 1.0 and 0.0 <= pair["with"] <= 1.0
+    assert "| mug_stand_s0 | rdo |" in (tmp_path / "study.md").read_text()
 
     plain = tmp_path / "mug_stand_s0" / "plain" / "metrics.json"
     before = plain.stat().st_mtime_ns
@@ -35,8 +42,7 @@ def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path
     assert (tmp_path / "pawn_sink_s1" / "hide" / "metrics.json").is_file()
     assert "resuming" in (tmp_path / "pawn_sink_s1" / "hide.log").read_text()  # from its checkpoint
 
-    other = subprocess.run([sys.executable, str(SCRIPT), "--case", "mug:stand:0", *TOY[:4], "--iterations", "30",
-                            *TOY[6:], "--out", str(tmp_path)], capture_output=True, text=True)
+    other = study(tmp_path, "--iterations", "30")
     assert other.returncode != 0 and "holds a run of other settings" in other.stderr
 
 
@@ -47,4 +53,9 @@ def test_bad_cases_are_refused_before_anything_trains(tmp_path):
         done = subprocess.run([sys.executable, str(SCRIPT), "--case", case, "--out", str(tmp_path)],
                               capture_output=True, text=True)
         assert done.returncode != 0 and message in done.stderr, (case, done.stderr)
+    for variant, message in (("rdo --mode rdo", "expected NAME=FLAGS"), ("a b=--mode rdo", "expected NAME=FLAGS"),
+                             ("default=--mode rdo", "names the defaults, without flags")):
+        done = subprocess.run([sys.executable, str(SCRIPT), "--case", "mug:stand:0", "--variant", variant,
+                               "--out", str(tmp_path)], capture_output=True, text=True)
+        assert done.returncode != 0 and message in done.stderr, (variant, done.stderr)
     assert not any(tmp_path.iterdir())
