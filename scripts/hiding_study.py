@@ -244,6 +244,10 @@ def main():
         raise SystemExit(f"unknown attacks {unknown}; known: {', '.join(SWEEP)}")
     if args.per_device < 1 or args.draws < 1:
         raise SystemExit("--per-device and --draws must be at least 1")
+    devices = args.devices.split(",")
+    bad = [d for d in devices if not re.fullmatch(r"cpu|cuda(:\d+)?", d)]
+    if bad:
+        raise SystemExit(f"--devices: {', '.join(map(repr, bad))} is not cpu, cuda or cuda:N")
     out = Path(args.out)
     flags = ["--width", str(args.width), "--height", str(args.height), "--iterations", str(args.iterations),
              "--quiet"]
@@ -263,8 +267,7 @@ def main():
                 else:
                     print(f"{case['name']} done", flush=True)
 
-    workers = [threading.Thread(target=worker, args=(d,)) for d in args.devices.split(",")
-               for _ in range(args.per_device)]
+    workers = [threading.Thread(target=worker, args=(d,)) for d in devices for _ in range(args.per_device)]
     for w in workers:
         w.start()
     for w in workers:

@@ -58,4 +58,7 @@ def test_bad_cases_are_refused_before_anything_trains(tmp_path):
         done = subprocess.run([sys.executable, str(SCRIPT), "--case", "mug:stand:0", "--variant", variant,
                                "--out", str(tmp_path)], capture_output=True, text=True)
         assert done.returncode != 0 and message in done.stderr, (variant, done.stderr)
+    done = subprocess.run([sys.executable, str(SCRIPT), "--case", "mug:stand:0", "--devices", "cpu,gpu1",
+                           "--out", str(tmp_path)], capture_output=True, text=True)
+    assert done.returncode != 0 and "'gpu1' is not cpu, cuda or cuda:N" in done.stderr
     assert not any(tmp_path.iterdir())
