@@ -79,3 +79,39 @@ def render_fps(render, cameras, device, repeats: int = 3) -> float:
     if torch.device(device).type == "cuda":
         torch.cuda.synchronize()
     return repeats * len(cameras) / (time.perf_counter() - t0)
+
+
+# Where an image's error can lie against an object's coverage: inside it, on its silhouette, outside.
+REGIONS = ("interior", "silhouette", "outside")
+
+
+def silhouette_regions(alpha: torch.Tensor, band: int = 2) -> dict[str, torch.Tensor]:
+    """REGIONS of an object's coverage ``alpha`` [H, W] in [0, 1], as bool masks [H, W] that split
+    every pixel once: ``silhouette`` the pixels within ``band`` px (a square neighbourhood) of the
+    boundary of alpha > 0.5, ``interior`` the rest of the object, ``outside`` the rest."""
+    if band < 1:
+        raise ValueError(f"band must be >= 1 pixel, got {band}")
+    inside = (alpha > 0.5).float()[None, None]
+    grow = lambda m: torch.nn.functional.max_pool2d(m, 2 * band + 1, stride=1, padding=band)  # noqa: E731
+    dilated, eroded = grow(inside)[0, 0] > 0, grow(1.0 - inside)[0, 0] == 0
+    silhouette = dilated & ~eroded
+    return {"interior": eroded, "silhouette": silhouette, "outside": ~dilated}
+
+
+def error_by_region(pairs, band: int = 2) -> dict[str, dict]:
+    """Squared error of (render [H, W, 3], truth [H, W, 3], alpha [H, W]) triples summed over views,
+    split by ``silhouette_regions``: per region its share of the error and of the pixels, and its
+    PSNR (None where it holds no pixel)."""
+    error = dict.fromkeys(REGIONS, 0.0)
+    pixels = dict.fromkeys(REGIONS, 0)
+    for render, truth, alpha in pairs:
+        squared = ((render - truth) ** 2).sum(-1)
+        for name, mask in silhouette_regions(alpha, band).items():
+            error[name] += float(squared[mask].sum())
+            pixels[name] += int(mask.sum())
+    total_error, total_pixels = sum(error.values()), sum(pixels.values())
+    return {name: {"error_share": error[name] / total_error if total_error > 0 else 0.0,
+                   "pixel_share": pixels[name] / total_pixels,
+                   "psnr": (10 * math.log10(3 * pixels[name] / error[name]) if error[name] > 0 else math.inf)
+                   if pixels[name] else None}
+            for name in REGIONS}
