@@ -26,7 +26,8 @@ def main():
     ap.add_argument("--band", type=int, default=2, help="half-width of the silhouette band, pixels")
     args = ap.parse_args()
     quiet_warp()
-    print("| run | PSNR, all pixels pooled | " + " | ".join(f"{r}: error share / pixel share / PSNR" for r in REGIONS) + " |")
+    columns = ["run", "PSNR, all pixels pooled"] + [f"{r}: error share / pixel share / PSNR" for r in REGIONS]
+    print("| " + " | ".join(columns) + " |")
     print("|---" * (2 + len(REGIONS)) + "|")
     for run in map(Path, args.runs):
         try:
@@ -36,9 +37,10 @@ def main():
             raise SystemExit(f"{run}: cannot open the run ({e})") from None
         views = KeyViews.from_metadata(meta, "cpu")
         by_name = {c.name: c for c in scene.train + scene.test}
-        pairs = [(render, torch.as_tensor(by_name[c.name].hidden), torch.as_tensor(by_name[c.name].hidden_alpha[..., 0]))
-                 for render, c in zip(reference_hidden(model, views), views.hidden)
-                 if c.name in by_name and by_name[c.name].hidden_alpha is not None]
+        truth = [by_name.get(c.name) for c in views.hidden]
+        pairs = [(render, torch.as_tensor(t.hidden), torch.as_tensor(t.hidden_alpha[..., 0]))
+                 for render, t in zip(reference_hidden(model, views), truth)
+                 if t is not None and t.hidden_alpha is not None]
         if not pairs:
             raise SystemExit(f"{run}: no hidden view with the object's coverage (a hidden object in a synthetic scene)")
         regions = error_by_region(pairs, args.band)

@@ -10,7 +10,8 @@ and each container is audited against the plain models of the other cases only.
 Per case, in OUT/NAME (NAME = object_placement_sSEED), and per variant (``--variant V="FLAGS"``: extra
 ``securegs hide`` flags; none given: the default alone, whose files carry no _V):
     securegs train FLAGS --seed SEED --out OUT/NAME/plain
-    securegs hide FLAGS --seed SEED --hide OBJECT --placement PLACEMENT [--hidden-up UP] [V's FLAGS] --out OUT/NAME/hide_V
+    securegs hide FLAGS --seed SEED --hide OBJECT --placement PLACEMENT [--hidden-up UP] [V's FLAGS] \\
+        --out OUT/NAME/hide_V
     securegs audit OUT/NAME/hide_V/public --reference OUT/NAME/plain/model --key OUT/NAME/hide_V/key.safetensors --json
     python scripts/robustness.py OUT/NAME/hide_V --attacks ATTACKS --draws DRAWS --out OUT/NAME/robustness_V
 Then OUT/study.md and OUT/study.json: one row per case and variant, and each variant's detection AUC
@@ -152,7 +153,8 @@ def case_rows(case: dict, run: Path, variants) -> list[dict]:
         end = suffix(variant)
         hide = json.loads((run / f"hide{end}" / "metrics.json").read_text())
         audit = json.loads((run / f"audit{end}.json").read_text())
-        sweep = {s["spec"]: s for s in json.loads((run / f"robustness{end}" / "robustness.json").read_text())["summary"]}
+        summary = json.loads((run / f"robustness{end}" / "robustness.json").read_text())["summary"]
+        sweep = {s["spec"]: s for s in summary}
         rows.append({
             "case": case["name"], "variant": variant, "cover_plain": plain["psnr"], "cover": hide["psnr_public"],
             "cover_change": hide["psnr_public"] - plain["psnr"], "hidden": hide.get("psnr_hidden"),
@@ -169,24 +171,28 @@ def markdown(rows: list[dict], aucs: dict) -> str:
     """The cases' table (``case_rows``' rows), then the AUCs' (``study_aucs``)."""
     fmt = lambda v, f="{:.2f}": "–" if v is None else f.format(v)  # noqa: E731
     specs = [s for s in REPORTED if any(s in r["attacks"] for r in rows)]
-    head = ["case", "variant", "plain cover dB", "cover dB (Δ)", "hidden dB / SSIM", "bits", "release ÷ plain", "density ratio",
-            "coverage (plain)", "audit score"] + [f"{s}: mean / worst dB, bits" for s in specs]
+    head = ["case", "variant", "plain cover dB", "cover dB (Δ)", "hidden dB / SSIM", "bits", "release ÷ plain",
+            "density ratio", "coverage (plain)", "audit score"] + [f"{s}: mean / worst dB, bits" for s in specs]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for r in rows:
-        cells = [r["case"], r["variant"], fmt(r["cover_plain"]), f"{fmt(r['cover'])} ({fmt(r['cover_change'], '{:+.2f}')})",
+        cells = [r["case"], r["variant"], fmt(r["cover_plain"]),
+                 f"{fmt(r['cover'])} ({fmt(r['cover_change'], '{:+.2f}')})",
                  f"{fmt(r['hidden'])} / {fmt(r['hidden_ssim'], '{:.4f}')}", fmt(r["bits"], "{:.0%}"),
                  fmt(r["size_ratio"]), fmt(r["density_ratio"]),
-                 f"{fmt(r['coverage'], '{:.3f}')} ({fmt(r['coverage_plain'], '{:.3f}')})", fmt(r["audit_score"], "{:.1f}")]
+                 f"{fmt(r['coverage'], '{:.3f}')} ({fmt(r['coverage_plain'], '{:.3f}')})",
+                 fmt(r["audit_score"], "{:.1f}")]
         for s in specs:
             a = r["attacks"].get(s)
-            cells.append("–" if a is None else f"{fmt(a['delta_mean'], '{:+.2f}')} / {fmt(a['delta_worst'], '{:+.2f}')}, "
-                                               f"{fmt(a['bit_accuracy_worst'], '{:.0%}')}")
+            cells.append("–" if a is None else
+                         f"{fmt(a['delta_mean'], '{:+.2f}')} / {fmt(a['delta_worst'], '{:+.2f}')}, "
+                         f"{fmt(a['bit_accuracy_worst'], '{:.0%}')}")
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "| detection AUC of the audit (0.5: chance) | variant | without a reference | with a reference |",
               "|---|---|---|---|"]
     for subset, by_variant in aucs.items():
         for variant, pair in by_variant.items():
-            lines.append(f"| {subset} | {variant} | " + " | ".join(fmt(pair.get(k)) for k in ("without", "with")) + " |")
+            cells = [subset, variant, fmt(pair.get("without")), fmt(pair.get("with"))]
+            lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
