@@ -278,6 +278,8 @@ class SecureConfig:
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
+    hidden_eps2d: the hidden render's screen-space dilation (``PrivateHeads`` eps2d, saved in the key),
+        in training and whenever the key renders; None: the public render's ``RasterOptions.eps2d``.
     hidden_stride: the hidden renders are made and trained on every hidden_stride-th step only, their
         loss weighted hidden_stride times, so that the hidden loss's gradient keeps its mean over the
         run; the steps between are plain Scaffold-GS steps (plus the bit projection). Most of what a
@@ -330,6 +332,7 @@ class SecureConfig:
     hidden_latent: int | None = None
     hidden_encoding: int | None = None
     hidden_depth: int | None = None
+    hidden_eps2d: float | None = None
     hidden_crop: bool = False
     hidden_stride: int = 1
     hidden_finish: float | None = None
@@ -389,11 +392,12 @@ class SecureConfig:
 
     def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
-        serving, encoding, depth) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
+        serving, encoding, depth, latent, eps2d) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
         density ``mode`` (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
         given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors,
-                 "encoding": self.hidden_encoding, "depth": self.hidden_depth, "latent": self.hidden_latent}
+                 "encoding": self.hidden_encoding, "depth": self.hidden_depth, "latent": self.hidden_latent,
+                 "eps2d": self.hidden_eps2d}
         # The anchor frame leaves what is not given to PrivateHeads' own defaults (the public k and d).
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {}
         return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None}}
@@ -408,6 +412,8 @@ class SecureConfig:
             raise ValueError(f"hidden_finish must be >= 0 (a fraction of the iterations), got {self.hidden_finish}")
         if self.hidden_encoding is not None and self.hidden_encoding < 0:
             raise ValueError(f"hidden_encoding must be >= 0, got {self.hidden_encoding}")
+        if self.hidden_eps2d is not None and not 0.0 <= self.hidden_eps2d < math.inf:
+            raise ValueError(f"hidden_eps2d must be >= 0 and finite, got {self.hidden_eps2d}")
         if self.hidden_latent is not None and (self.hidden_latent < 0 or self.hidden_latent == 1):
             raise ValueError(f"hidden_latent must be 0 (none) or a grid resolution >= 2, got {self.hidden_latent}")
         if self.hidden_weight is not None and not self.hidden_weight >= 0.0:

@@ -1,5 +1,6 @@
 """Steganalysis (secure.steganalysis, securegs audit), the box-frame hiding mode and the placement
 of hidden objects in the synthetic scene."""
+import dataclasses
 import json
 import math
 
@@ -175,6 +176,29 @@ def test_the_exported_hidden_gaussians_are_those_the_latent_grid_renders(scene):
     for name in ("means", "colors", "opacities"):
         assert exported[name].shape == rendered[name].shape and torch.allclose(exported[name], rendered[name],
                                                                                atol=1e-6), name
+
+
+def test_the_hidden_dilation_is_in_the_key_and_leaves_the_public_render_alone(tmp_path):
+    """--hidden-eps2d: the key's hidden renders dilate by its own eps2d, the public render by the
+    options it is given, and a key without one renders as before."""
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
+                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", "--hidden-eps2d", "0.05",
+                 *TINY]) == 0
+    model, meta = open_container(out / "public", out / "key.safetensors")
+    assert meta["heads"]["eps2d"] == 0.05 and model.private.eps2d == 0.05
+    cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+    options = RasterOptions(tile_size=8)
+    with torch.no_grad():
+        own = model.render_hidden(cam, options)["image"]
+        at_005 = model.render_hidden(cam, dataclasses.replace(options, eps2d=0.05))["image"]
+        public = model.render(cam, options)["image"]
+        model.private.eps2d = None  # as a key without its own dilation: the options' 0.3
+        at_03 = model.render_hidden(cam, options)["image"]
+        assert torch.equal(model.render(cam, options)["image"], public)
+    assert torch.equal(own, at_005) and not torch.allclose(own, at_03)
+    with pytest.raises(ValueError, match="hidden_eps2d must be >= 0"):
+        SecureConfig(hidden_eps2d=-1.0)
 
 
 def test_the_box_encoding_holds_octaves_of_the_position():

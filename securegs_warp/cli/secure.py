@@ -66,6 +66,8 @@ SECURE_FLAGS = (
     ("--hidden-latent", "secure.hidden_latent", "box frame: resolution of the key's private latent grid over the "
                                                 "object's neighbourhood (default 0: none)"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
+    ("--hidden-eps2d", "secure.hidden_eps2d", "the hidden render's screen-space dilation, kept in the key (default: "
+                                              "the public render's, 0.3)"),
     ("--hidden-stride", "secure.hidden_stride", "train the hidden branch on every N-th step only, its loss weighted "
                                                 "N times (faster training, lower hidden fidelity; default 1)"),
     ("--hidden-finish", "secure.hidden_finish", "after the joint run, train the private heads alone for this "

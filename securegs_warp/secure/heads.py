@@ -88,14 +88,19 @@ class PrivateHeads(nn.Module):
         (``fix_serving``); decoding reads the radius, not the count, so a release that lost anchors
         decodes with the survivors and no anchor the key never trained is drawn in to make up the
         number (it would paint its own Gaussians into the box).
+    eps2d: the hidden render's screen-space dilation (``RasterOptions.eps2d``, added to each 2D
+        covariance), None: the render options' own. The public render must keep Scaffold-GS's for
+        the release to look the same in its viewer; the hidden render is the key holder's alone.
     """
 
     def __init__(self, public: ScaffoldHeads, *, message: str | None = None, bit_seed: str | None = None,
                  bit_cell: float | None = None,
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0,
-                 encoding: int = 0, depth: int = 1, latent: int = 0):
+                 encoding: int = 0, depth: int = 1, latent: int = 0, eps2d: float | None = None):
         super().__init__()
+        if eps2d is not None and not 0.0 <= eps2d < math.inf:
+            raise ValueError(f"eps2d must be >= 0 and finite, got {eps2d}")
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
         if frame == "box" and not offsets:
@@ -113,6 +118,7 @@ class PrivateHeads(nn.Module):
         self.feat_dim, self.n_offsets, self.scale_offsets = d, k, scale_offsets
         self.frame, self.width, self.serving = frame, w, int(serving)
         self.encoding, self.depth = int(encoding), int(depth)
+        self.eps2d = None if eps2d is None else float(eps2d)
         self.decoder = ScaffoldHeads(d, k, use_feat_bank=public.use_feat_bank,
                                      add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
                                      add_color_dist=public.add_color_dist, width=w) if hidden else None
@@ -257,4 +263,4 @@ class PrivateHeads(nn.Module):
         return {**bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
                 "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
                 "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth,
-                "latent": 0 if self.latent_grid is None else self.latent_grid.resolution}
+                "latent": 0 if self.latent_grid is None else self.latent_grid.resolution, "eps2d": self.eps2d}

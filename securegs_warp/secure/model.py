@@ -2,6 +2,8 @@
 hidden payload from the same public anchors and read each hidden message from their features."""
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from torch import nn
 
@@ -72,6 +74,8 @@ class SecureModel(ScaffoldModel):
             rows = self._captured[secret]
         anchors = self.anchors if anchors is None else anchors
         mask, index, keep = self._decoding_rows(private, anchors, camera, visible)
+        if private.eps2d is not None:
+            options = dataclasses.replace(options or RasterOptions(), eps2d=private.eps2d)
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
                            offset_source=source, feature_source=private.feature_source, feature_grad=feature_grad,
                            scaling_grad=scaling_grad, anchor_mask=mask, anchor_index=index, rows=rows,
