@@ -48,22 +48,23 @@ def load_runs(paths: list[str]) -> tuple[list[dict], list]:
         if RunFolder(path).config.is_file():
             cover, label, xyz = read_run_anchors(path)
             found = {label: xyz}
-            group = groups.setdefault(cover, ({}, cover, []))
+            group = groups.setdefault(cover, ({}, cover, {}))
         else:
             report, arrays = read_report(path)
             meta = report["meta"]
             found = models(arrays)
-            group = groups.setdefault(tuple(meta[k] for k in RUN_KEYS), ({}, tuple(meta[k] for k in COVER_KEYS), []))
+            group = groups.setdefault(tuple(meta[k] for k in RUN_KEYS), ({}, tuple(meta[k] for k in COVER_KEYS), {}))
         for label, xyz in found.items():
             if label in group[0]:
                 raise SystemExit(f"{path}: a second {label!r} for one scene, seed and budget (the first from "
-                                 f"{', '.join(map(str, group[2]))}): audit them in separate calls")
+                                 f"{group[2][label]}): audit them in separate calls")
             group[0][label] = xyz
-        group[2].append(path)
+            group[2][label] = path
     for group, _, where in groups.values():
         if BASELINE not in group:
-            raise SystemExit(f"{', '.join(map(str, where))}: no plain model of that scene, seed and budget among the "
-                             "runs (a securegs train run, or secure_vs_baseline.py's baseline)")
+            folders = ", ".join(map(str, dict.fromkeys(where.values())))
+            raise SystemExit(f"{folders}: no plain model of that scene, seed and budget among the runs (a securegs "
+                             "train run, or secure_vs_baseline.py's baseline)")
     return runs + [g for g, _, _ in groups.values()], covers + [c for _, c, _ in groups.values()]
 
 

@@ -33,12 +33,12 @@ import threading
 from pathlib import Path
 
 from securegs_warp.compare import BASELINE, read_run_anchors
-from securegs_warp.data.meshes import HIDDEN_OBJECTS, MESH_SUFFIXES
+from securegs_warp.data.meshes import HIDDEN_OBJECTS, MESH_SUFFIXES, UP_AXES
+from securegs_warp.data.synthetic import PLACEMENTS
 from securegs_warp.io.atomic import atomic_write
 from securegs_warp.robustness import SWEEP
 from securegs_warp.secure.steganalysis import auc_by_model
 
-PLACEMENTS = ("stand", "sink", "float")
 # The variant without extra flags; its folders and files carry no suffix.
 DEFAULT = "default"
 SCRIPTS = Path(__file__).resolve().parent
@@ -56,8 +56,8 @@ def parse_case(text: str) -> dict:
         raise SystemExit(f"--case {text!r}: placement must be one of {', '.join(PLACEMENTS)}, got {placement!r}")
     if not seed.isdigit():
         raise SystemExit(f"--case {text!r}: the seed must be a non-negative integer, got {seed!r}")
-    if up not in ("y", "z"):
-        raise SystemExit(f"--case {text!r}: the up axis must be y or z, got {up!r}")
+    if up not in UP_AXES:
+        raise SystemExit(f"--case {text!r}: the up axis must be one of {', '.join(UP_AXES)}, got {up!r}")
     # Checked here rather than when the hide step fails, after the plain model has trained.
     if Path(obj).suffix.lower() in MESH_SUFFIXES:
         if not Path(obj).is_file():
@@ -66,6 +66,8 @@ def parse_case(text: str) -> dict:
     elif obj not in HIDDEN_OBJECTS:
         raise SystemExit(f"--case {text!r}: the object must be one of {sorted(HIDDEN_OBJECTS)} or a mesh file "
                          f"({', '.join(MESH_SUFFIXES)}), got {obj!r}")
+    elif up != "z":
+        raise SystemExit(f"--case {text!r}: an up axis turns a mesh file; the built-in {obj!r} stands as it is")
     return {"object": obj, "placement": placement, "seed": int(seed), "up": up,
             "name": f"{Path(obj).stem}_{placement}_s{seed}"}
 
@@ -106,32 +108,37 @@ def steps(case: dict, run: Path, flags: list[str], variants: dict, attacks: str,
             (f"audit{end}", run / f"audit{end}.json",
              cli + ["audit", str(hide / "public"), "--reference", str(plain / "model"), "--key",
                     str(hide / "key.safetensors"), "--json"]),
-            (f"robustness{end}", robustness / "robustness.json",
+            # robustness.json is rewritten after every attack: a marker says the sweep ended.
+            (f"robustness{end}", run / f"robustness{end}.done",
              [sys.executable, str(SCRIPTS / "robustness.py"), str(hide), "--attacks", attacks, "--draws", str(draws),
               "--device", device, "--out", str(robustness)]),
         ]
     return out
 
 
+def settings(case: dict, flags: list[str], variants: dict, attacks: str, draws: int, devices: list[str]) -> str:
+    """What a case's results depend on, as the text of its case.json: a rerun with other settings
+    must not reuse them. The kind of device counts (the tile size follows it, and so the cover)."""
+    kinds = sorted({d.split(":")[0] for d in devices})
+    return json.dumps({"case": case, "flags": flags, "variants": variants, "attacks": attacks, "draws": draws,
+                       "devices": kinds}, sort_keys=True)
+
+
 def run_case(case: dict, out: Path, flags: list[str], variants: dict, attacks: str, draws: int,
              device: str) -> str | None:
-    """Every step of one case not done yet, on ``device``; None, or what failed and where its log is."""
+    """Every step of one case not done yet, on ``device``; None, or what failed and where its log is.
+    Once a step runs, every step after it runs again: its results may rest on the old ones."""
     run = out / case["name"]
-    run.mkdir(parents=True, exist_ok=True)
-    # What the case's results depend on: a rerun with other settings must not reuse them.
-    settings = json.dumps({"case": case, "flags": flags, "variants": variants, "attacks": attacks, "draws": draws},
-                          sort_keys=True)
-    recorded = run / "case.json"
-    if recorded.is_file() and recorded.read_text() != settings:
-        return f"{case['name']}: {run} holds a run of other settings ({recorded}); give another --out"
-    atomic_write(recorded, lambda f: f.write(settings.encode()))
     env = dict(os.environ)
     if device.startswith("cuda:"):  # one GPU a process, which sees only its own
         env["CUDA_VISIBLE_DEVICES"] = device.split(":", 1)[1]
         device = "cuda"
+    stale = False
     for name, done, command in steps(case, run, flags, variants, attacks, draws, device):
-        if done.is_file():
+        if done.is_file() and not stale:
             continue
+        stale = True
+        done.unlink(missing_ok=True)
         log = run / f"{name}.log"
         with open(log, "w") as f:
             if name.startswith("audit"):  # its one JSON object is the result: written whole or not at all
@@ -140,6 +147,8 @@ def run_case(case: dict, out: Path, flags: list[str], variants: dict, attacks: s
                     atomic_write(done, lambda g: g.write(result.stdout))
             else:
                 result = subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, env=env)
+                if result.returncode == 0 and done.suffix == ".done":
+                    atomic_write(done, lambda g: None)
         if result.returncode != 0:
             return f"{case['name']}: {name} failed (exit {result.returncode}); see {log}"
     return None
@@ -257,6 +266,15 @@ def main():
     out = Path(args.out)
     flags = ["--width", str(args.width), "--height", str(args.height), "--iterations", str(args.iterations),
              "--quiet"]
+    # Every case's settings checked before anything trains, then recorded.
+    wanted = {c["name"]: settings(c, flags, variants, args.attacks, args.draws, devices) for c in cases}
+    for name, text in wanted.items():
+        recorded = out / name / "case.json"
+        if recorded.is_file() and recorded.read_text() != text:
+            raise SystemExit(f"{out / name} holds a run of other settings ({recorded}); give another --out")
+    for name, text in wanted.items():
+        (out / name).mkdir(parents=True, exist_ok=True)
+        atomic_write(out / name / "case.json", lambda f, text=text: f.write(text.encode()))
     queue, failures, lock = list(cases), [], threading.Lock()
 
     def worker(device):

@@ -101,7 +101,10 @@ def silhouette_regions(alpha: torch.Tensor, band: int = 2) -> dict[str, torch.Te
 def error_by_region(pairs, band: int = 2) -> dict[str, dict]:
     """Squared error of (render [H, W, 3], truth [H, W, 3], alpha [H, W]) triples summed over views,
     split by ``silhouette_regions``: per region its share of the error and of the pixels, and its
-    PSNR (None where it holds no pixel)."""
+    PSNR (None where it holds no pixel). ValueError without a view."""
+    pairs = list(pairs)
+    if not pairs:
+        raise ValueError("error_by_region needs at least one (render, truth, alpha) view")
     error = dict.fromkeys(REGIONS, 0.0)
     pixels = dict.fromkeys(REGIONS, 0)
     for render, truth, alpha in pairs:

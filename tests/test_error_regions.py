@@ -40,3 +40,5 @@ def test_error_by_region_puts_an_edge_error_on_the_silhouette():
     assert regions["outside"]["error_share"] == 0.0 and math.isinf(regions["outside"]["psnr"])
     assert regions["interior"]["psnr"] == pytest.approx(10 * math.log10(3 * 36 / inner))
     assert sum(r["pixel_share"] for r in regions.values()) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="at least one"):
+        error_by_region([])

@@ -32,15 +32,22 @@ def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path
         pair = result["aucs"]["all"][variant]
         assert 0.0 <= pair["without"] <= 1.0 and 0.0 <= pair["with"] <= 1.0
     assert "| mug_stand_s0 | rdo |" in (tmp_path / "study.md").read_text()
+    # A sweep counts as done by its marker, written when it ended (its JSON grows attack by attack).
+    assert (tmp_path / "mug_stand_s0" / "robustness.done").is_file()
 
     plain = tmp_path / "mug_stand_s0" / "plain" / "metrics.json"
     before = plain.stat().st_mtime_ns
+    mug_audit = (tmp_path / "mug_stand_s0" / "audit.json").stat().st_mtime_ns
     (tmp_path / "pawn_sink_s1" / "hide" / "metrics.json").unlink()  # as if interrupted at the end
     again = study(tmp_path)
     assert again.returncode == 0, again.stderr + again.stdout
     assert plain.stat().st_mtime_ns == before  # done: not trained again
     assert (tmp_path / "pawn_sink_s1" / "hide" / "metrics.json").is_file()
     assert "resuming" in (tmp_path / "pawn_sink_s1" / "hide.log").read_text()  # from its checkpoint
+    # What came after the step that ran again was made again from it; the other case was left alone.
+    audit = tmp_path / "pawn_sink_s1" / "audit.json"
+    assert audit.stat().st_mtime_ns > (tmp_path / "pawn_sink_s1" / "hide" / "metrics.json").stat().st_mtime_ns
+    assert (tmp_path / "mug_stand_s0" / "audit.json").stat().st_mtime_ns == mug_audit
 
     other = study(tmp_path, "--iterations", "30")
     assert other.returncode != 0 and "holds a run of other settings" in other.stderr
@@ -49,7 +56,8 @@ def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path
 def test_bad_cases_are_refused_before_anything_trains(tmp_path):
     for case, message in (("teapot:stand:0", "the object must be one of"), ("mug:under:0", "placement must be one of"),
                           ("mug:stand:x", "the seed must be a non-negative integer"), ("mug:stand", "expected OBJECT"),
-                          ("mug:stand:0:x", "the up axis must be y or z"), ("nothing.obj:stand:0", "no mesh file")):
+                          ("mug:stand:0:x", "the up axis must be one of"), ("nothing.obj:stand:0", "no mesh file"),
+                          ("mug:stand:0:y", "an up axis turns a mesh file")):
         done = subprocess.run([sys.executable, str(SCRIPT), "--case", case, "--out", str(tmp_path)],
                               capture_output=True, text=True)
         assert done.returncode != 0 and message in done.stderr, (case, done.stderr)

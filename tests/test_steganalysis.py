@@ -197,6 +197,10 @@ def test_the_hidden_dilation_is_in_the_key_and_leaves_the_public_render_alone(tm
         at_03 = model.render_hidden(cam, options)["image"]
         assert torch.equal(model.render(cam, options)["image"], public)
     assert torch.equal(own, at_005) and not torch.allclose(own, at_03)
+    # A key written before the option existed holds no eps2d: its heads take the options' own.
+    from securegs_warp.secure.heads import PrivateHeads
+    described = {k: v for k, v in meta["heads"].items() if k != "eps2d"}
+    assert PrivateHeads(model.heads, **described).eps2d is None
     with pytest.raises(ValueError, match="hidden_eps2d must be >= 0"):
         SecureConfig(hidden_eps2d=-1.0)
 
