@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from securegs_warp.compare import BASELINE, SCENE_AND_BUDGET, SCENE_ARRAYS, read_report, read_run_anchors
+from securegs_warp.io.atomic import atomic_write
 from securegs_warp.runs import RunFolder
 from securegs_warp.secure.steganalysis import auc_by_model
 
@@ -86,8 +87,8 @@ def main():
         auc = f"{r['auc']:.2f}" if "auc" in r else "–"
         print(f"| {label} | {len(r['scores'])} | {', '.join(f'{s:.1f}' for s in r['scores'])} | {auc} |")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=1)
+        data = json.dumps(result, indent=1).encode()
+        atomic_write(args.json, lambda f: f.write(data))
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ import torch
 import warp as wp
 
 from securegs_warp import benchmark
+from securegs_warp.io.atomic import atomic_write
 from securegs_warp.render_profile import host_ms, timeline, trace
 
 
@@ -70,8 +71,8 @@ def main():
               f"| {r['gpu_busy_ms']:.3f} | {r['measured_ms'] - r['gpu_busy_ms']:.3f} | {r['launches']:.0f} |")
     if args.out:
         os.makedirs(args.out, exist_ok=True)
-        with open(os.path.join(args.out, "profile_render.json"), "w") as f:
-            json.dump({"device": benchmark.device_label(args.device), "rows": rows}, f, indent=1)
+        data = json.dumps({"device": benchmark.device_label(args.device), "rows": rows}, indent=1).encode()
+        atomic_write(os.path.join(args.out, "profile_render.json"), lambda f: f.write(data))
 
 
 if __name__ == "__main__":
