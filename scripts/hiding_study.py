@@ -8,7 +8,8 @@ up axis (z unless given). Give each case its own seed: the plain models are then
 and each container is audited against the plain models of the other cases only.
 
 Per case, in OUT/NAME (NAME = object_placement_sSEED), and per variant (``--variant V="FLAGS"``: extra
-``securegs hide`` flags; none given: the default alone, whose files carry no _V):
+``securegs hide`` flags; none given: the default alone, whose files carry no _V), where FLAGS are
+``--width W --height H --iterations N --quiet [--scene SCENE]``:
     securegs train FLAGS --seed SEED --out OUT/NAME/plain
     securegs hide FLAGS --seed SEED --hide OBJECT --placement PLACEMENT [--hidden-up UP] [V's FLAGS] \\
         --out OUT/NAME/hide_V
@@ -19,6 +20,7 @@ Then OUT/study.md and OUT/study.json: one row per case and variant, and each var
 
     python scripts/hiding_study.py --case mug:stand:0 --case mug:sink:1 --out runs/study      # the CPU
     python scripts/hiding_study.py --case mug:stand:0 --case mug:stand:1 --variant rdo="--mode rdo"   # and the paper's
+    python scripts/hiding_study.py --scene garden --case mug:stand:2 --case bunny.obj:sink:3:y --out runs/garden
     python scripts/hiding_study.py --width 1920 --height 1080 --iterations 4000 --devices cuda:0,cuda:1 \\
         --per-device 2 --case mug:stand:5 --case ogre.obj:stand:8:y --case mug:sink:13 --out runs/study1080
 """
@@ -34,7 +36,7 @@ from pathlib import Path
 
 from securegs_warp.compare import BASELINE, read_run_anchors
 from securegs_warp.data.meshes import HIDDEN_OBJECTS, MESH_SUFFIXES, UP_AXES
-from securegs_warp.data.synthetic import PLACEMENTS
+from securegs_warp.data.synthetic import PLACEMENTS, SCENES
 from securegs_warp.io.atomic import atomic_write
 from securegs_warp.robustness import SWEEP
 from securegs_warp.secure.steganalysis import auc_by_model
@@ -234,6 +236,8 @@ def study_aucs(cases: list[dict], out: Path, variants) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", action="append", required=True, help="OBJECT:PLACEMENT:SEED[:UP], repeatable")
+    ap.add_argument("--scene", choices=sorted(SCENES), default=None,
+                    help="the built-in cover scene of every case (default: securegs's own, the room)")
     ap.add_argument("--width", type=int, default=128)
     ap.add_argument("--height", type=int, default=96)
     ap.add_argument("--iterations", type=int, default=400)
@@ -265,7 +269,7 @@ def main():
         raise SystemExit(f"--devices: {', '.join(map(repr, bad))} is not cpu, cuda or cuda:N")
     out = Path(args.out)
     flags = ["--width", str(args.width), "--height", str(args.height), "--iterations", str(args.iterations),
-             "--quiet"]
+             "--quiet"] + (["--scene", args.scene] if args.scene else [])
     # Every case's settings checked before anything trains, then recorded.
     wanted = {c["name"]: settings(c, flags, variants, args.attacks, args.draws, devices) for c in cases}
     for name, text in wanted.items():

@@ -1,12 +1,13 @@
-"""scripts/hiding_study.py end to end on the CPU at a toy budget: two cases and two variants, the table
-and the AUCs, a rerun that reuses what is done and resumes what is not, and the settings guard."""
+"""scripts/hiding_study.py end to end on the CPU at a toy budget: two cases and two variants in the
+garden, the table and the AUCs, a rerun that reuses what is done and resumes what is not, and the settings guard."""
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "hiding_study.py"
-TOY = ["--width", "32", "--height", "24", "--iterations", "20", "--attacks", "prune-random", "--draws", "1"]
+TOY = ["--width", "32", "--height", "24", "--iterations", "20", "--attacks", "prune-random", "--draws", "1",
+       "--scene", "garden"]
 
 
 def study(out, *args):
@@ -27,6 +28,8 @@ def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path
     # Each variant is its own kind of container: the rdo one trained in the paper's mode.
     assert '"mode": "rdo"' in (tmp_path / "mug_stand_s0" / "hide_rdo" / "config.json").read_text()
     assert '"mode": "cover"' in (tmp_path / "mug_stand_s0" / "hide" / "config.json").read_text()
+    for run in ("plain", "hide"):  # --scene reaches both trainings: the cover is the garden
+        assert json.loads((tmp_path / "pawn_sink_s1" / run / "config.json").read_text())["scene"]["source"] == "garden"
     # Two covers (seeds 0 and 1): each container against the other's plain model.
     for variant in ("default", "rdo"):
         pair = result["aucs"]["all"][variant]
