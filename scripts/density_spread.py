@@ -16,6 +16,7 @@ import json
 
 import numpy as np
 
+from securegs_warp.io.atomic import atomic_write
 from securegs_warp.secure import steganalysis
 from securegs_warp.secure.container import KeyViews, open_container
 
@@ -38,14 +39,18 @@ def main():
             rows.append({"surface_of": run, "model": args.plain[a], "reference": args.plain[b],
                          "density_ratio": leak["density_ratio"], "coverage": leak["coverage"],
                          "reference_coverage": leak["reference_coverage"]})
-            print(f"{run}'s surface: {args.plain[a]} / {args.plain[b]}: density ratio {leak['density_ratio']:.2f}, "
+            ratio = "–" if leak["density_ratio"] is None else f"{leak['density_ratio']:.2f}"
+            print(f"{run}'s surface: {args.plain[a]} / {args.plain[b]}: density ratio {ratio}, "
                   f"coverage {leak['coverage']:.3f} ({leak['reference_coverage']:.3f})")
-    ratios = np.array([r["density_ratio"] for r in rows])
-    print(f"plain / plain density ratio over {len(ratios)} pairs: {ratios.min():.2f} to {ratios.max():.2f}, "
-          f"median {np.median(ratios):.2f}; above 1.1 in {int((ratios > 1.1).sum())}")
+    # A reference without an anchor near the surface leaves the ratio undefined (None): not a pair.
+    ratios = np.array([r["density_ratio"] for r in rows if r["density_ratio"] is not None])
+    if len(ratios):
+        print(f"plain / plain density ratio over {len(ratios)} pairs: {ratios.min():.2f} to {ratios.max():.2f}, "
+              f"median {np.median(ratios):.2f}; above 1.1 in {int((ratios > 1.1).sum())}")
+    print(f"pairs without a ratio (no anchor of the reference near the surface): {len(rows) - len(ratios)}")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=1)
+        text = json.dumps(rows, indent=1).encode()
+        atomic_write(args.json, lambda f: f.write(text))
 
 
 if __name__ == "__main__":
