@@ -44,12 +44,9 @@ def main():
         if not pairs:
             raise SystemExit(f"{run}: no hidden view with the object's coverage (a hidden object in a synthetic scene)")
         regions = error_by_region(pairs, args.band)
-        errors = sum(((r - t) ** 2).sum() for r, t, _ in pairs)
-        pixels = sum(a.numel() for _, _, a in pairs)
-        total = 10 * torch.log10(3 * pixels / errors).item()
-        print(f"| {run} | {total:.2f} | " + " | ".join(
+        print(f"| {run} | {regions['all']['psnr']:.2f} | " + " | ".join(
             f"{100 * g['error_share']:.0f}% / {100 * g['pixel_share']:.1f}% / "
-            + ("–" if g["psnr"] is None else f"{g['psnr']:.1f}") for g in regions.values()) + " |")
+            + ("–" if g["psnr"] is None else f"{g['psnr']:.1f}") for g in map(regions.get, REGIONS)) + " |")
 
 
 if __name__ == "__main__":

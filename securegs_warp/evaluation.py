@@ -100,8 +100,9 @@ def silhouette_regions(alpha: torch.Tensor, band: int = 2) -> dict[str, torch.Te
 
 def error_by_region(pairs, band: int = 2) -> dict[str, dict]:
     """Squared error of (render [H, W, 3], truth [H, W, 3], alpha [H, W]) triples summed over views,
-    split by ``silhouette_regions``: per region its share of the error and of the pixels, and its
-    PSNR (None where it holds no pixel). ValueError without a view."""
+    split by ``silhouette_regions``: per region of REGIONS its share of the error and of the pixels,
+    and its PSNR (None where it holds no pixel); under "all", the same of every pixel pooled.
+    ValueError without a view."""
     pairs = list(pairs)
     if not pairs:
         raise ValueError("error_by_region needs at least one (render, truth, alpha) view")
@@ -112,9 +113,9 @@ def error_by_region(pairs, band: int = 2) -> dict[str, dict]:
         for name, mask in silhouette_regions(alpha, band).items():
             error[name] += float(squared[mask].sum())
             pixels[name] += int(mask.sum())
-    total_error, total_pixels = sum(error.values()), sum(pixels.values())
-    return {name: {"error_share": error[name] / total_error if total_error > 0 else 0.0,
-                   "pixel_share": pixels[name] / total_pixels,
+    error["all"], pixels["all"] = sum(error.values()), sum(pixels.values())
+    return {name: {"error_share": error[name] / error["all"] if error["all"] > 0 else 0.0,
+                   "pixel_share": pixels[name] / pixels["all"],
                    "psnr": (10 * math.log10(3 * pixels[name] / error[name]) if error[name] > 0 else math.inf)
                    if pixels[name] else None}
-            for name in REGIONS}
+            for name in (*REGIONS, "all")}

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from securegs_warp.evaluation import error_by_region, silhouette_regions
+from securegs_warp.evaluation import REGIONS, error_by_region, silhouette_regions
 
 
 def square_alpha(size=20, lo=5, hi=15):
@@ -39,6 +39,9 @@ def test_error_by_region_puts_an_edge_error_on_the_silhouette():
     assert regions["interior"]["error_share"] == pytest.approx(inner / (edge + inner))
     assert regions["outside"]["error_share"] == 0.0 and math.isinf(regions["outside"]["psnr"])
     assert regions["interior"]["psnr"] == pytest.approx(10 * math.log10(3 * 36 / inner))
-    assert sum(r["pixel_share"] for r in regions.values()) == pytest.approx(1.0)
+    assert sum(regions[r]["pixel_share"] for r in REGIONS) == pytest.approx(1.0)
+    pooled = regions["all"]  # every pixel: the squared error over all of them
+    assert pooled["error_share"] == pooled["pixel_share"] == 1.0
+    assert pooled["psnr"] == pytest.approx(10 * math.log10(3 * 400 / (edge + inner)))
     with pytest.raises(ValueError, match="at least one"):
         error_by_region([])
