@@ -17,6 +17,9 @@ Per case, in OUT/NAME (NAME = object_placement_sSEED), and per variant (``--vari
     python scripts/robustness.py OUT/NAME/hide_V --attacks ATTACKS --draws DRAWS --out OUT/NAME/robustness_V
 Then OUT/study.md and OUT/study.json: one row per case and variant, and each variant's detection AUC
 (``steganalysis.auc_by_model``, as ``scripts/audit_auc.py`` computes it) over all cases and per placement.
+``--report`` (the same arguments) runs nothing and tables what the folders hold, for a study cut
+short (a lease that ended): its rows mark a sweep that had not ended, and its AUCs take the cases
+that have every variant's row.
 
     python scripts/hiding_study.py --case mug:stand:0 --case mug:sink:1 --out runs/study      # the CPU
     python scripts/hiding_study.py --case mug:stand:0 --case mug:stand:1 --variant rdo="--mode rdo"   # and the paper's
@@ -157,17 +160,24 @@ def run_case(case: dict, out: Path, flags: list[str], variants: dict, attacks: s
 
 
 def case_rows(case: dict, run: Path, variants) -> list[dict]:
-    """The table's rows of one finished case, one per variant."""
+    """The table's rows of one case, one per variant whose container has been trained, audited and
+    swept, in part at least: ``sweep_ended`` says whether its sweep ran to the end (a finished case
+    has every row, each sweep ended; ``--report`` tables what a cut-short study left)."""
+    if not (run / "plain" / "metrics.json").is_file():
+        return []
     plain = json.loads((run / "plain" / "metrics.json").read_text())
     rows = []
     for variant in variants:
         end = suffix(variant)
-        hide = json.loads((run / f"hide{end}" / "metrics.json").read_text())
-        audit = json.loads((run / f"audit{end}.json").read_text())
-        summary = json.loads((run / f"robustness{end}" / "robustness.json").read_text())["summary"]
-        sweep = {s["spec"]: s for s in summary}
+        files = (run / f"hide{end}" / "metrics.json", run / f"audit{end}.json",
+                 run / f"robustness{end}" / "robustness.json")
+        if not all(f.is_file() for f in files):
+            continue
+        hide, audit, swept = (json.loads(f.read_text()) for f in files)
+        sweep = {s["spec"]: s for s in swept["summary"]}
         rows.append({
-            "case": case["name"], "variant": variant, "cover_plain": plain["psnr"], "cover": hide["psnr_public"],
+            "case": case["name"], "variant": variant, "sweep_ended": (run / f"robustness{end}.done").is_file(),
+            "cover_plain": plain["psnr"], "cover": hide["psnr_public"],
             "cover_change": hide["psnr_public"] - plain["psnr"], "hidden": hide.get("psnr_hidden"),
             "hidden_ssim": hide.get("ssim_hidden"), "bits": hide.get("bit_accuracy"),
             "size_ratio": hide["size_mb_public"] / plain["size_mb"], "density_ratio": audit.get("density_ratio"),
@@ -186,7 +196,7 @@ def markdown(rows: list[dict], aucs: dict) -> str:
             "density ratio", "coverage (plain)", "audit score"] + [f"{s}: mean / worst dB, bits" for s in specs]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for r in rows:
-        cells = [r["case"], r["variant"], fmt(r["cover_plain"]),
+        cells = [r["case"] + ("" if r["sweep_ended"] else " (sweep cut short)"), r["variant"], fmt(r["cover_plain"]),
                  f"{fmt(r['cover'])} ({fmt(r['cover_change'], '{:+.2f}')})",
                  f"{fmt(r['hidden'])} / {fmt(r['hidden_ssim'], '{:.4f}')}", fmt(r["bits"], "{:.0%}"),
                  fmt(r["size_ratio"]), fmt(r["density_ratio"]),
@@ -198,6 +208,8 @@ def markdown(rows: list[dict], aucs: dict) -> str:
                          f"{fmt(a['delta_mean'], '{:+.2f}')} / {fmt(a['delta_worst'], '{:+.2f}')}, "
                          f"{fmt(a['bit_accuracy_worst'], '{:.0%}')}")
         lines.append("| " + " | ".join(cells) + " |")
+    if not aucs:
+        return "\n".join(lines + ["", "No detection AUC: it needs two cases or more with every variant's row."]) + "\n"
     lines += ["", "| detection AUC of the audit (0.5: chance) | variant | without a reference | with a reference |",
               "|---|---|---|---|"]
     for subset, by_variant in aucs.items():
@@ -250,6 +262,10 @@ def main():
     ap.add_argument("--devices", default="cpu", help="comma-separated: cpu, cuda, cuda:N (default: cpu)")
     ap.add_argument("--per-device", type=int, default=1, help="cases at once on each device")
     ap.add_argument("--out", default="runs/study")
+    ap.add_argument("--report", action="store_true",
+                    help="run nothing: table what the cases' folders hold now (a study cut short: the rows of "
+                         "the containers trained, audited and swept, a sweep that had not ended marked; the "
+                         "AUCs over the cases with every variant's row)")
     args = ap.parse_args()
     cases = [parse_case(c) for c in args.case]
     variants = dict(parse_variant(v) for v in args.variant) or {DEFAULT: []}
@@ -276,6 +292,27 @@ def main():
         recorded = out / name / "case.json"
         if recorded.is_file() and recorded.read_text() != text:
             raise SystemExit(f"{out / name} holds a run of other settings ({recorded}); give another --out")
+    if not args.report:
+        run_cases(cases, out, wanted, flags, variants, args.attacks, args.draws, devices, args.per_device)
+    rows = {c["name"]: case_rows(c, out / c["name"], variants) for c in cases}
+    missing = [f"{c['name']} ({v})" for c in cases for v in variants
+               if v not in {r["variant"] for r in rows[c["name"]]}]
+    whole = [c for c in cases if len(rows[c["name"]]) == len(variants)]
+    aucs = study_aucs(whole, out, variants)
+    table_rows = [r for c in cases for r in rows[c["name"]]]
+    table = markdown(table_rows, aucs)
+    if missing:
+        table += f"\nNot in the table (not trained, audited and swept yet): {', '.join(missing)}.\n"
+    atomic_write(out / "study.md", lambda f: f.write(table.encode()))
+    data = json.dumps({"args": vars(args), "rows": table_rows, "aucs": aucs, "missing": missing}, indent=1).encode()
+    atomic_write(out / "study.json", lambda f: f.write(data))
+    print(table)
+
+
+def run_cases(cases: list[dict], out: Path, wanted: dict, flags: list[str], variants: dict, attacks: str,
+              draws: int, devices: list[str], per_device: int) -> None:
+    """Record each case's settings (``wanted``: name -> settings JSON), then run every case's steps not
+    done yet, ``per_device`` cases at once on each device; SystemExit listing the failures."""
     for name, text in wanted.items():
         (out / name).mkdir(parents=True, exist_ok=True)
         atomic_write(out / name / "case.json", lambda f, text=text: f.write(text.encode()))
@@ -288,27 +325,20 @@ def main():
                     return
                 case = queue.pop(0)
             print(f"{case['name']} on {device}", flush=True)
-            failure = run_case(case, out, flags, variants, args.attacks, args.draws, device)
+            failure = run_case(case, out, flags, variants, attacks, draws, device)
             with lock:
                 if failure:
                     failures.append(failure)
                 else:
                     print(f"{case['name']} done", flush=True)
 
-    workers = [threading.Thread(target=worker, args=(d,)) for d in devices for _ in range(args.per_device)]
+    workers = [threading.Thread(target=worker, args=(d,)) for d in devices for _ in range(per_device)]
     for w in workers:
         w.start()
     for w in workers:
         w.join()
     if failures:
         raise SystemExit("\n".join(failures))
-    rows = [row for c in cases for row in case_rows(c, out / c["name"], variants)]
-    aucs = study_aucs(cases, out, variants)
-    table = markdown(rows, aucs)
-    atomic_write(out / "study.md", lambda f: f.write(table.encode()))
-    data = json.dumps({"args": vars(args), "rows": rows, "aucs": aucs}, indent=1).encode()
-    atomic_write(out / "study.json", lambda f: f.write(data))
-    print(table)
 
 
 if __name__ == "__main__":

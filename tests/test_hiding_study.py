@@ -52,6 +52,23 @@ def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path
     assert audit.stat().st_mtime_ns > (tmp_path / "pawn_sink_s1" / "hide" / "metrics.json").stat().st_mtime_ns
     assert (tmp_path / "mug_stand_s0" / "audit.json").stat().st_mtime_ns == mug_audit
 
+    # A study cut short, tabled as it stands: nothing runs, a sweep that had not ended is marked, a
+    # container not yet swept is listed, and the AUCs keep the cases with every variant's row.
+    (tmp_path / "pawn_sink_s1" / "robustness.done").unlink()
+    (tmp_path / "mug_stand_s0" / "robustness_rdo" / "robustness.json").unlink()
+    before = {f: f.stat().st_mtime_ns for f in tmp_path.rglob("metrics.json")}
+    cut = study(tmp_path, "--report")
+    assert cut.returncode == 0, cut.stderr + cut.stdout
+    assert {f: f.stat().st_mtime_ns for f in tmp_path.rglob("metrics.json")} == before
+    assert not (tmp_path / "pawn_sink_s1" / "robustness.done").is_file()
+    result = json.loads((tmp_path / "study.json").read_text())
+    assert [(r["case"], r["variant"], r["sweep_ended"]) for r in result["rows"]] == [
+        ("mug_stand_s0", "default", True), ("pawn_sink_s1", "default", False), ("pawn_sink_s1", "rdo", True)]
+    assert result["missing"] == ["mug_stand_s0 (rdo)"] and result["aucs"] == {}
+    table = (tmp_path / "study.md").read_text()
+    assert "| pawn_sink_s1 (sweep cut short) | default |" in table and "Not in the table" in table
+    assert "No detection AUC" in table
+
     other = study(tmp_path, "--iterations", "30")
     assert other.returncode != 0 and "holds a run of other settings" in other.stderr
 
