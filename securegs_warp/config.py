@@ -109,7 +109,7 @@ class TrainConfig:
     mlp_featurebank_lr: tuple = (0.01, 0.00001)
     appearance_lr: tuple = (0.05, 0.0005)
     mlp_offset_lr: tuple = (0.004, 0.0004)  # SecureGS's private offset predictor F_o† (no paper value)
-    latent_lr: tuple = (0.0075, 0.00075)  # SecureGS's private latent grid (starts at feature_lr; no paper value)
+    latent_lr: tuple = (0.0075, 0.00075)  # SecureGS's private latent grid and codes (start at feature_lr; no paper value)
     densify: bool = True
 
     def __post_init__(self):
@@ -206,7 +206,8 @@ class StegaNeRFConfig:
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
 # the hidden object (the key keeps the radius that takes them in), through MLPs `width` wide
 # (docs/results.md, "Geometric security", measures them).
-BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1, "latent": 0}
+BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1, "latent": 0,
+                      "codes": 0}
 # What ``robust`` "auto" trains a hidden object in the cover mode against, and the bit margin it
 # was measured with: the payload then survives random pruning, feature noise and purify for no
 # training time (docs/results.md, "Robust training by default").
@@ -275,6 +276,11 @@ class SecureConfig:
         r³ private features over the box's neighbourhood, added to each serving anchor's public
         feature before the private heads decode it; 0: none). None: BOX_FRAME_DEFAULTS in the box
         frame; the anchor frame has none.
+    hidden_codes: in the box frame, the rows of the key's private per-anchor codes
+        (``secure.heads.AnchorCodes``: a feature of the key's for each serving anchor, added to its
+        public one before the private heads decode it; 0: none), which take the place of
+        hidden_feature_grad's share of the hidden gradient in the release (docs/results.md, "private
+        codes"). None: BOX_FRAME_DEFAULTS in the box frame; the anchor frame has none.
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
@@ -330,6 +336,7 @@ class SecureConfig:
     hidden_width: int | None = None
     hidden_anchors: int | None = None
     hidden_latent: int | None = None
+    hidden_codes: int | None = None
     hidden_encoding: int | None = None
     hidden_depth: int | None = None
     hidden_eps2d: float | None = None
@@ -392,12 +399,12 @@ class SecureConfig:
 
     def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
-        serving, encoding, depth, latent, eps2d) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
+        serving, encoding, depth, latent, codes, eps2d) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
         density ``mode`` (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
         given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors,
                  "encoding": self.hidden_encoding, "depth": self.hidden_depth, "latent": self.hidden_latent,
-                 "eps2d": self.hidden_eps2d}
+                 "codes": self.hidden_codes, "eps2d": self.hidden_eps2d}
         # The anchor frame leaves what is not given to PrivateHeads' own defaults (the public k and d).
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {}
         return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None}}
@@ -414,6 +421,8 @@ class SecureConfig:
             raise ValueError(f"hidden_encoding must be >= 0, got {self.hidden_encoding}")
         if self.hidden_eps2d is not None and not 0.0 <= self.hidden_eps2d < math.inf:
             raise ValueError(f"hidden_eps2d must be >= 0 and finite, got {self.hidden_eps2d}")
+        if self.hidden_codes is not None and self.hidden_codes < 0:
+            raise ValueError(f"hidden_codes must be 0 (none) or a number of rows >= 1, got {self.hidden_codes}")
         if self.hidden_latent is not None and (self.hidden_latent < 0 or self.hidden_latent == 1):
             raise ValueError(f"hidden_latent must be 0 (none) or a grid resolution >= 2, got {self.hidden_latent}")
         if self.hidden_weight is not None and not self.hidden_weight >= 0.0:

@@ -109,13 +109,17 @@ def test_box_frame_options_are_in_the_key_and_reveal_rebuilds_them(tmp_path):
     out = tmp_path / "c"
     assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
                  "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40",
-                 "--hidden-encoding", "2", "--hidden-depth", "2", "--hidden-latent", "3", *TINY]) == 0
+                 "--hidden-encoding", "2", "--hidden-depth", "2", "--hidden-latent", "3", "--hidden-codes", "64",
+                 *TINY]) == 0
     model, meta = open_container(out / "public", out / "key.safetensors")
     assert meta["heads"]["frame"] == "box" and (meta["heads"]["n_hidden"], meta["heads"]["width"]) == (3, 8)
     assert (meta["heads"]["encoding"], meta["heads"]["depth"], meta["heads"]["latent"]) == (2, 2, 3)
     # The latent grid trained (it starts at zero) and came back from the key.
     grid = model.private.latent_grid.grid
     assert grid.shape == (1, model.private.feat_dim, 3, 3, 3) and grid.abs().max() > 0
+    # So did the codes.
+    assert meta["heads"]["codes"] == 64
+    assert model.private.codes.table.shape == (64, model.private.feat_dim) and model.private.codes.table.abs().max() > 0
     assert model.private.serving == 40 and model.private.box[1].min() > 0
     # F_o† reads the feature and 3 (1 + 2·2) encoded coordinates, through two hidden layers.
     linears = [m for m in model.private.offset_mlp if isinstance(m, torch.nn.Linear)]
@@ -159,6 +163,33 @@ def test_the_latent_grid_reads_contracted_box_positions_and_starts_as_no_grid():
         PrivateHeads(ScaffoldHeads(2, 2), latent=3)
     with pytest.raises(ValueError, match="hidden_latent"):
         SecureConfig(hidden_latent=1)
+
+
+def test_each_anchor_reads_the_code_of_its_own_cell_and_the_codes_start_as_none():
+    from securegs_warp.model import ScaffoldHeads
+    from securegs_warp.secure.heads import CODE_CELLS, PrivateHeads
+
+    private = PrivateHeads(ScaffoldHeads(2, 2), frame="box", n_hidden=2, width=8, codes=4096)
+    private.set_box([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
+    cell = 2.0 / CODE_CELLS  # a cell's width in u = p / (1 + |p|), about its width in p near the centre
+    xyz = torch.tensor([[0.1, 0.2, 0.3], [0.1 + 0.2 * cell, 0.2, 0.3], [0.1 + 4 * cell, 0.2, 0.3], [-0.5, 3.0, 20.0]])
+    feat = torch.randn(4, 2)
+    assert torch.equal(private.feature_source(xyz, feat), feat)  # zero at the start: the features themselves
+    with torch.no_grad():
+        private.codes.table.copy_(torch.arange(4096.0)[:, None].expand(4096, 2))
+    rows = private.feature_source(xyz, torch.zeros(4, 2))[:, 0]
+    # One cell, one code; another cell its own (these three cells hash to three rows).
+    assert rows[0] == rows[1] and len({rows[0].item(), rows[2].item(), rows[3].item()}) == 3
+    # An anchor's code depends on its position alone: a release that lost anchors reads the same codes.
+    assert torch.equal(private.feature_source(xyz[2:], torch.zeros(2, 2))[:, 0], rows[2:])
+    # The hidden loss's gradient reaches the rows read, and no other.
+    private.codes.table.grad = None
+    private.feature_source(xyz, torch.zeros(4, 2)).sum().backward()
+    assert int((private.codes.table.grad.abs().sum(1) > 0).sum()) == 3
+    with pytest.raises(ValueError, match="frame='box'"):
+        PrivateHeads(ScaffoldHeads(2, 2), codes=8)
+    with pytest.raises(ValueError, match="hidden_codes"):
+        SecureConfig(hidden_codes=-1)
 
 
 def test_the_exported_hidden_gaussians_are_those_the_latent_grid_renders(scene):

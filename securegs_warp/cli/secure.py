@@ -65,6 +65,8 @@ SECURE_FLAGS = (
                                                     "position that F_o† reads (default 6; 0: the position alone)"),
     ("--hidden-latent", "secure.hidden_latent", "box frame: resolution of the key's private latent grid over the "
                                                 "object's neighbourhood (default 0: none)"),
+    ("--hidden-codes", "secure.hidden_codes", "box frame: rows of the key's private per-anchor codes, added to "
+                                              "the serving anchors' features (default 0: none)"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-eps2d", "secure.hidden_eps2d", "the hidden render's screen-space dilation, kept in the key (default: "
                                               "the public render's, 0.3)"),

@@ -21,16 +21,27 @@ FRAMES = ("anchor", "box")
 INSIDE_TIE_BREAK = 1e-3
 
 
+# The cells of a key's private codes, per axis of the contracted box frame: fine enough that the
+# serving anchors fall in cells of their own (1016-1018 cells for 1024 anchors in demo-budget
+# containers; 512 gained 3-6 more).
+CODE_CELLS = 256
+
+
+def contract(where: torch.Tensor) -> torch.Tensor:
+    """[N, 3]: box-frame positions [N, 3] contracted per axis, u = p / (1 + |p|), into (-1, 1): the
+    box's inside spans the middle half, and the serving anchors outside it keep distinct places
+    instead of piling onto a border."""
+    return where / (1.0 + where.abs())
+
+
 class LatentGrid(nn.Module):
     """A key's private latent: a dense grid of features (``grid`` [1, d, r, r, r]) over the box's
     neighbourhood, read trilinearly at each anchor's position and added to the anchor's public
     feature before the private heads decode it (``feature_source`` of ``decode_rows``). Without it
     the hidden Gaussians' colours, opacities and shapes are functions of the public features alone,
     which the cover's loss shapes; the grid gives the key free parameters near the object without
-    putting any in the release (d·r³ floats in the key). Positions are read in the box's frame
-    contracted per axis, u = p / (1 + |p|): the box's inside spans the middle half of the grid and
-    the serving anchors outside it keep distinct cells instead of piling onto the border. Zero at
-    the start: the decoding begins as it would without it."""
+    putting any in the release (d·r³ floats in the key). Positions are read in the box's frame,
+    ``contract``-ed. Zero at the start: the decoding begins as it would without it."""
 
     def __init__(self, feat_dim: int, resolution: int):
         super().__init__()
@@ -41,11 +52,36 @@ class LatentGrid(nn.Module):
 
     def forward(self, where: torch.Tensor) -> torch.Tensor:
         """[N, d]: the latent at box-frame positions where [N, 3] (the box spans [-1, 1]³)."""
-        u = where / (1.0 + where.abs())
+        u = contract(where)
         # grid_sample reads (x, y, z) against the grid's (W, H, D) axes.
         sampled = F.grid_sample(self.grid, u[None, :, None, None, :], mode="bilinear", padding_mode="border",
                                 align_corners=True)
         return sampled[0, :, :, 0, 0].t()
+
+
+class AnchorCodes(nn.Module):
+    """A key's private per-anchor features: a table of codes (``table`` [rows, d]), each anchor
+    reading the row that its cell of CODE_CELLS³ over the box's ``contract``-ed neighbourhood hashes
+    to, added to its public feature before the private heads decode it. The latent grid is smooth
+    over space; a code is the anchor's own (anchors of one cell, or of cells hashed to one row,
+    share it). It is the key's counterpart of the hidden loss's gradient into the public features
+    (``SecureConfig.hidden_feature_grad``), which fits the released features to the hidden object
+    and so costs the cover: with codes that gradient can be 0. Anchors keep their positions under
+    pruning, so a pruned release reads its survivors' codes as trained. Zero at the start."""
+
+    def __init__(self, feat_dim: int, rows: int):
+        super().__init__()
+        if rows < 1:
+            raise ValueError(f"a code table needs at least one row, got {rows}")
+        self.rows = int(rows)
+        self.table = nn.Parameter(torch.zeros(rows, feat_dim))
+
+    def forward(self, where: torch.Tensor) -> torch.Tensor:
+        """[N, d]: the codes of anchors at box-frame positions where [N, 3]."""
+        cell = ((contract(where) + 1.0) * (0.5 * CODE_CELLS)).floor().long().clamp(0, CODE_CELLS - 1)
+        # Teschner et al.'s spatial hash (three large primes, XOR-ed).
+        row = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ (cell[:, 2] * 83492791)
+        return self.table[row % self.rows]
 
 
 class PrivateHeads(nn.Module):
@@ -82,6 +118,8 @@ class PrivateHeads(nn.Module):
     depth: the number of hidden layers of F_o† (1: Scaffold-GS's Linear, ReLU, Linear).
     latent: in the box frame, the resolution of a ``LatentGrid`` whose value at each anchor's
         position the private heads add to its feature (0: none; the features alone).
+    codes: in the box frame, the rows of an ``AnchorCodes`` table whose code for each anchor the
+        private heads add to its feature too (0: none).
     serving: in the box frame, how many anchors, nearest the box first, decode hidden Gaussians (0:
         every anchor that the view shows). Training keeps ``serving_radius`` (a buffer in the units of
         ``box_distance``, saved in the key) just beyond the serving-th nearest anchor
@@ -97,7 +135,7 @@ class PrivateHeads(nn.Module):
                  bit_cell: float | None = None,
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0,
-                 encoding: int = 0, depth: int = 1, latent: int = 0, eps2d: float | None = None):
+                 encoding: int = 0, depth: int = 1, latent: int = 0, codes: int = 0, eps2d: float | None = None):
         super().__init__()
         if eps2d is not None and not 0.0 <= eps2d < math.inf:
             raise ValueError(f"eps2d must be >= 0 and finite, got {eps2d}")
@@ -109,6 +147,9 @@ class PrivateHeads(nn.Module):
             raise ValueError(f"encoding must be >= 0 and depth >= 1, got {encoding} and {depth}")
         if encoding and frame != "box":
             raise ValueError("encoding applies to the box frame's positions: it needs frame='box'")
+        if codes and (frame != "box" or not hidden):
+            raise ValueError("private codes lie over the box frame's positions and feed the hidden decoder: "
+                             "they need frame='box' and hidden=True")
         if latent and (frame != "box" or not hidden):
             raise ValueError("a latent grid lies over the box frame's positions and feeds the hidden decoder: "
                              "it needs frame='box' and hidden=True")
@@ -125,6 +166,7 @@ class PrivateHeads(nn.Module):
         self.offset_mlp = make_mlp(d + 3 * (1 + 2 * self.encoding), w, 3 * k, depth=self.depth) \
             if hidden and offsets else None
         self.latent_grid = LatentGrid(d, latent) if latent else None
+        self.codes = AnchorCodes(d, codes) if codes else None
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
@@ -157,12 +199,16 @@ class PrivateHeads(nn.Module):
     @property
     def feature_source(self):
         """The ``FeatureSource`` of the hidden decoding: the public features plus the latent grid's
-        value at each anchor (None without a grid)."""
-        return None if self.latent_grid is None else self._with_latent
+        and the codes' values at each anchor (None with neither)."""
+        return None if self.latent_grid is None and self.codes is None else self._with_latent
 
     def _with_latent(self, xyz: torch.Tensor, feat: torch.Tensor) -> torch.Tensor:
-        """[Nv, d]: features feat [Nv, d] plus the grid's value at anchor positions xyz [Nv, 3]."""
-        return feat + self.latent_grid(self.box_position(xyz))
+        """[Nv, d]: features feat [Nv, d] plus the grid's and the codes' values at anchor positions xyz [Nv, 3]."""
+        where = self.box_position(xyz)
+        for latent in (self.latent_grid, self.codes):
+            if latent is not None:
+                feat = feat + latent(where)
+        return feat
 
     def box_position(self, xyz: torch.Tensor) -> torch.Tensor:
         """[N, 3]: anchor positions [N, 3] in the box's frame (the box spans [-1, 1]³); no gradient
@@ -248,12 +294,14 @@ class PrivateHeads(nn.Module):
 
     def named_mlps(self) -> dict[str, nn.Module]:
         """Trainable parts by learning-rate schedule: the MLPs (the decoder's names are the public
-        ones) and the latent grid ("latent")."""
+        ones), the latent grid ("latent") and the codes ("codes")."""
         parts = dict(self.decoder.named_mlps()) if self.decoder is not None else {}
         if self.offset_mlp is not None:
             parts["mlp_offset"] = self.offset_mlp
         if self.latent_grid is not None:
             parts["latent"] = self.latent_grid
+        if self.codes is not None:
+            parts["codes"] = self.codes
         return parts
 
     def describe(self) -> dict:
@@ -263,4 +311,5 @@ class PrivateHeads(nn.Module):
         return {**bits, "offsets": self.offset_mlp is not None, "scale_offsets": self.scale_offsets,
                 "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
                 "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth,
-                "latent": 0 if self.latent_grid is None else self.latent_grid.resolution, "eps2d": self.eps2d}
+                "latent": 0 if self.latent_grid is None else self.latent_grid.resolution,
+                "codes": 0 if self.codes is None else self.codes.rows, "eps2d": self.eps2d}
