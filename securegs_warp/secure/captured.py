@@ -5,8 +5,8 @@ the hidden branch's decoding is some eighty small torch ops forward and as many 
 backward, each a launch the GPU finishes long before the host issues the next. In the box frame
 the anchors that decode are the serving ones, a count that stays fixed between refits of the
 serving radius (or follows the anchors while there are no more than ``serving`` of them), so the
-decoding of their rows (``decode_rows``: view directions, the latent grid's features where the key
-has one, the private MLPs, offsets, scales) has a fixed shape: ``torch.cuda.make_graphed_callables``
+decoding of their rows (``decode_rows``: view directions, the latent grid's and the codes' features
+where the key has them, the private MLPs, offsets, scales) has a fixed shape: ``torch.cuda.make_graphed_callables``
 captures its forward and its backward once per shape, and each step replays them as one autograd
 node. The gathers of the anchor rows and the opacity test stay eager (they index by data).
 
