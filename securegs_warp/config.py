@@ -24,6 +24,7 @@ import math
 import typing
 from pathlib import Path
 
+from .data import is_scene_folder, load_scene
 from .rasterizer import RasterOptions
 from .strategies import RegionAwareStrategy
 
@@ -517,17 +518,18 @@ class SceneSpec:
             raise ValueError(f"hidden_size must be > 0 and finite, got {self.hidden_size}")
         if not math.isfinite(self.hidden_yaw):
             raise ValueError(f"hidden_yaw must be finite (degrees), got {self.hidden_yaw}")
-        if Path(self.source).is_dir() and not Path(self.source).is_absolute():
+        if is_scene_folder(self.source) and not Path(self.source).is_absolute():
             object.__setattr__(self, "source", str(Path(self.source).resolve()))
 
     @property
     def builtin(self) -> bool:
-        return not Path(self.source).is_dir()
+        """Whether the source names a built-in scene rather than a scene folder (``load_scene``'s
+        precedence: a folder of another kind, a run's output named "garden" say, does not hide the
+        built-in garden)."""
+        return not is_scene_folder(self.source)
 
     def load(self):
         """The ``SceneData`` this spec describes."""
-        from .data import load_scene
-
         if self.builtin:
             return load_scene(self.source, hidden=self.hidden, level=self.level, width=self.width,
                               height=self.height, n_train=self.n_train, n_test=self.n_test, seed=self.seed,

@@ -199,6 +199,21 @@ def test_load_scene_builds_builtin_names():
     assert load_scene("synthetic", **SMALL).name == "room"
 
 
+def test_a_folder_that_holds_no_scene_does_not_hide_the_builtin_of_its_name(tmp_path, monkeypatch):
+    """A study's output folder named "garden" in the working directory: the built-in garden still
+    loads, by load_scene and by a run's SceneSpec; a folder of another name is refused as no scene."""
+    from securegs_warp.config import SceneSpec
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "garden").mkdir()
+    (tmp_path / "runs").mkdir()
+    assert load_scene("garden", **SMALL).name == "garden"
+    spec = SceneSpec(source="garden", **SMALL)
+    assert spec.builtin and spec.source == "garden" and spec.load().name == "garden"
+    with pytest.raises(DataError, match="neither a COLMAP folder"):
+        load_scene("runs")
+
+
 @pytest.mark.parametrize("argument, value, expected", [
     ("width", 0, r"width must be an integer >= 1, got 0"),
     ("height", -4, r"height must be an integer >= 1, got -4"),
