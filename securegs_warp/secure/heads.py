@@ -21,9 +21,9 @@ FRAMES = ("anchor", "box")
 INSIDE_TIE_BREAK = 1e-3
 
 
-# The cells of a key's private codes, per axis of the contracted box frame: fine enough that the
-# serving anchors fall in cells of their own (1016-1018 cells for 1024 anchors in demo-budget
-# containers; 512 gained 3-6 more).
+# The cells of a key's private codes, per axis of the contracted box frame: fine enough that serving
+# anchors rarely share a cell, and so a code (docs/results.md, "Private codes in the key", counts
+# them in trained containers).
 CODE_CELLS = 256
 
 
