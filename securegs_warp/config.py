@@ -237,9 +237,11 @@ class SecureConfig:
     hidden_feature_grad, hidden_scaling_grad: the share of ℓ_hid's gradient that reaches the public
         anchor features f_v and scalings l_v (1: all of it, as in the paper; 0: none). Both are
         public attributes; below 1 the public loss dominates them and the cover stays closer to
-        plain Scaffold-GS, while the private heads carry more of the hidden payload. At 0 the
-        hidden branch is never learnt (the private heads cannot decode it from features nothing
-        shapes for it); docs/results.md has the measured trade-off behind the default 0.1.
+        plain Scaffold-GS, while the private heads carry more of the hidden payload. At 0 in the
+        anchor frame the hidden branch is never learnt (the private heads cannot decode it from
+        features nothing shapes for it); the box frame still learns it from the anchors' box
+        positions, less sharply, or as sharply for some objects with ``hidden_codes``.
+        docs/results.md has the measured trade-off behind the default 0.1.
     feature_grad_until: the fraction of the run during which hidden_feature_grad applies (after it
         the public loss alone finishes the features).
     bit_margin: after every step each anchor feature is moved the least distance that makes its
