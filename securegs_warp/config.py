@@ -24,7 +24,7 @@ import math
 import typing
 from pathlib import Path
 
-from .data import is_scene_folder, load_scene
+from .data import load_scene, reads_as_folder
 from .rasterizer import RasterOptions
 from .strategies import RegionAwareStrategy
 
@@ -520,15 +520,14 @@ class SceneSpec:
             raise ValueError(f"hidden_size must be > 0 and finite, got {self.hidden_size}")
         if not math.isfinite(self.hidden_yaw):
             raise ValueError(f"hidden_yaw must be finite (degrees), got {self.hidden_yaw}")
-        if is_scene_folder(self.source) and not Path(self.source).is_absolute():
+        if reads_as_folder(self.source) and not Path(self.source).is_absolute():
             object.__setattr__(self, "source", str(Path(self.source).resolve()))
 
     @property
     def builtin(self) -> bool:
-        """Whether the source names a built-in scene rather than a scene folder (``load_scene``'s
-        precedence: a folder of another kind, a run's output named "garden" say, does not hide the
-        built-in garden)."""
-        return not is_scene_folder(self.source)
+        """Whether the source names a built-in scene rather than a folder (``reads_as_folder``: a
+        run's output named "garden" does not hide the built-in garden)."""
+        return not reads_as_folder(self.source)
 
     def load(self):
         """The ``SceneData`` this spec describes."""

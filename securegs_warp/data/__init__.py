@@ -13,15 +13,19 @@ from .synthetic import SCENE_ALIASES, SCENES, make_synthetic_scene
 
 __all__ = [
     "Camera", "SceneData", "DataError", "make_synthetic_scene", "load_colmap", "load_blender", "load_mesh", "load_scene",
-    "is_scene_folder",
+    "reads_as_folder",
 ]
 
 
-def is_scene_folder(path) -> bool:
-    """Whether ``path`` is a folder of a real scene: COLMAP (with sparse/) or Blender (with
-    transforms_train.json)."""
-    path = Path(path)
-    return (path / "sparse").is_dir() or (path / "transforms_train.json").is_file()
+def reads_as_folder(path_or_name) -> bool:
+    """Whether ``load_scene`` reads this as a scene folder rather than a built-in scene's name: a
+    COLMAP or Blender folder, or any other existing folder not named like a built-in scene (which it
+    then refuses as holding no scene). A folder named like a built-in scene that holds no scene (a
+    run's output called "garden", say) does not hide the built-in."""
+    path = Path(path_or_name)
+    if (path / "sparse").is_dir() or (path / "transforms_train.json").is_file():
+        return True
+    return path.is_dir() and str(path_or_name) not in SCENES and str(path_or_name) not in SCENE_ALIASES
 
 
 def load_scene(path_or_name, **kwargs) -> SceneData:
@@ -30,19 +34,19 @@ def load_scene(path_or_name, **kwargs) -> SceneData:
     A folder with sparse/ is COLMAP (:func:`load_colmap`), one with transforms_train.json is
     Blender (:func:`load_blender`); otherwise a built-in synthetic scene name ("synthetic",
     "default", "room", "garden") goes to :func:`make_synthetic_scene`. A scene folder wins over a
-    built-in name; any other folder of that name (a run's output, say) does not. Anything else is a
-    DataError.
+    built-in name; any other folder of that name (a run's output, say) does not (``reads_as_folder``).
+    Anything else is a DataError.
     """
     path = Path(path_or_name)
-    if (path / "sparse").is_dir():
-        return load_colmap(path, **kwargs)
-    if (path / "transforms_train.json").is_file():
-        return load_blender(path, **kwargs)
+    if reads_as_folder(path_or_name):
+        if (path / "sparse").is_dir():
+            return load_colmap(path, **kwargs)
+        if (path / "transforms_train.json").is_file():
+            return load_blender(path, **kwargs)
+        raise DataError(f"{path}: neither a COLMAP folder (no sparse/) nor a Blender one (no transforms_train.json)")
     name = str(path_or_name)
     if name in SCENES or name in SCENE_ALIASES:
         return make_synthetic_scene(name, **kwargs)
-    if path.is_dir():
-        raise DataError(f"{path}: neither a COLMAP folder (no sparse/) nor a Blender one (no transforms_train.json)")
     raise DataError(
         f"{name}: no such scene folder, and not a built-in scene name "
         f"({', '.join(sorted(SCENES) + sorted(SCENE_ALIASES))})"
