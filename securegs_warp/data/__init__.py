@@ -25,7 +25,11 @@ def reads_as_folder(path_or_name) -> bool:
     path = Path(path_or_name)
     if (path / "sparse").is_dir() or (path / "transforms_train.json").is_file():
         return True
-    return path.is_dir() and str(path_or_name) not in SCENES and str(path_or_name) not in SCENE_ALIASES
+    return path.is_dir() and not _builtin_name(path_or_name)
+
+
+def _builtin_name(path_or_name) -> bool:
+    return str(path_or_name) in SCENES or str(path_or_name) in SCENE_ALIASES
 
 
 def load_scene(path_or_name, **kwargs) -> SceneData:
@@ -44,10 +48,9 @@ def load_scene(path_or_name, **kwargs) -> SceneData:
         if (path / "transforms_train.json").is_file():
             return load_blender(path, **kwargs)
         raise DataError(f"{path}: neither a COLMAP folder (no sparse/) nor a Blender one (no transforms_train.json)")
-    name = str(path_or_name)
-    if name in SCENES or name in SCENE_ALIASES:
-        return make_synthetic_scene(name, **kwargs)
+    if _builtin_name(path_or_name):
+        return make_synthetic_scene(str(path_or_name), **kwargs)
     raise DataError(
-        f"{name}: no such scene folder, and not a built-in scene name "
+        f"{path_or_name}: no such scene folder, and not a built-in scene name "
         f"({', '.join(sorted(SCENES) + sorted(SCENE_ALIASES))})"
     )

@@ -73,8 +73,11 @@ class AnchorCodes(nn.Module):
         super().__init__()
         if rows < 1:
             raise ValueError(f"a code table needs at least one row, got {rows}")
-        self.rows = int(rows)
-        self.table = nn.Parameter(torch.zeros(rows, feat_dim))
+        self.table = nn.Parameter(torch.zeros(int(rows), feat_dim))
+
+    @property
+    def rows(self) -> int:
+        return self.table.shape[0]
 
     def forward(self, where: torch.Tensor) -> torch.Tensor:
         """[N, d]: the codes of anchors at box-frame positions where [N, 3]."""
