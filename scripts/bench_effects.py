@@ -90,7 +90,7 @@ def render_fn(model, plain: ScaffoldHeads, variant: Variant, cam: Camera, device
         image, alpha = out["image"], out["alpha"]
         if private is not None and private.decoder is not None:
             hid = render_view(model, private.decoder, cam, None, raster, offset_source=private.hidden_offsets,
-                              feature_source=private.feature_source)
+                              anchor_source=private.anchor_source)
             image, alpha = image + hid["image"], alpha + hid["alpha"]
         if private is not None and private.bits is not None:
             image = image + 0.0 * private.bit_logits(model.feat, model.xyz)[0].sigmoid().mean()

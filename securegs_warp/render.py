@@ -39,7 +39,7 @@ def camera_tensors(cam: Camera, device) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, options: RasterOptions | None = None,
-                *, camera_index: int | None = None, offset_source=None, feature_source=None, feature_grad: float = 1.0,
+                *, camera_index: int | None = None, offset_source=None, anchor_source=None, feature_grad: float = 1.0,
                 scaling_grad: float = 1.0, anchor_mask: torch.Tensor | None = None, anchor_index=None, rows=None,
                 compact: bool = True, keep: torch.Tensor | None = None) -> dict:
     """Decode ``anchors`` (an ``AnchorModel``) visible from ``cam`` with ``heads`` and rasterize them.
@@ -48,8 +48,8 @@ def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, op
     (default ``RasterOptions()``). camera_index: the camera's row of an appearance embedding (views
     without one of their own, held-out ones, use the first camera's). offset_source: where the
     Gaussians sit (default: the stored public offsets; SecureGS's hidden branch passes its private
-    offset predictor). feature_source: what the heads decode in place of the anchors' features (a
-    key's private latent). feature_grad, scaling_grad: see ``generate_neural_gaussians``. anchor_mask:
+    offset predictor). anchor_source: what the heads decode in place of the anchors' features and
+    log scalings (a key's private latent and codes). feature_grad, scaling_grad: see ``generate_neural_gaussians``. anchor_mask:
     [N] bool, the anchors to decode (default: those whose own footprint reaches the image; a decoder
     that places Gaussians far from their anchor names its own, and robust training drops some).
     anchor_index: [Nv] long, the indices of ``anchor_mask``'s True entries, when the caller keeps
@@ -68,7 +68,7 @@ def render_view(anchors, heads, cam: Camera, background: torch.Tensor | None, op
     g = generate_neural_gaussians(anchors, heads, camera_center_from_viewmat(viewmat), visible,
                                   camera_index=appearance, feature_grad=feature_grad,
                                   scaling_grad=scaling_grad, rows=rows, anchor_index=anchor_index, compact=compact,
-                                  keep=keep, feature_source=feature_source, **extra)
+                                  keep=keep, anchor_source=anchor_source, **extra)
     image, alpha, info = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], viewmat, K,
                                    cam.width, cam.height, background=background, options=options)
     return {"image": image, "alpha": alpha, "info": info, "gaussians": g}

@@ -16,14 +16,14 @@ from .render import camera_tensors, render_view
 
 
 def decode_all(anchors: AnchorModel, heads: ScaffoldHeads, camera, *, camera_index: int | None = None,
-               offset_source=None, feature_source=None, anchor_mask: torch.Tensor | None = None) -> dict:
+               offset_source=None, anchor_source=None, anchor_mask: torch.Tensor | None = None) -> dict:
     """``generate_neural_gaussians`` of every anchor (or of those in ``anchor_mask`` [N] bool) as
-    seen from ``camera`` (no visibility test), with its ``offset_source`` and ``feature_source``."""
+    seen from ``camera`` (no visibility test), with its ``offset_source`` and ``anchor_source``."""
     viewmat, _ = camera_tensors(camera, anchors.xyz.device)
     appearance = (camera_index or 0) if heads.appearance_dim else None
     extra = {"offset_source": offset_source} if offset_source is not None else {}
     return generate_neural_gaussians(anchors, heads, camera_center_from_viewmat(viewmat), anchor_mask,
-                                     camera_index=appearance, feature_source=feature_source, **extra)
+                                     camera_index=appearance, anchor_source=anchor_source, **extra)
 
 
 def build_heads(config: HeadsConfig, num_cameras: int = 0) -> ScaffoldHeads:

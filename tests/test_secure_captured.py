@@ -27,13 +27,13 @@ def fresh_pool():
     raster_graph._POOL.clear()
 
 
-def _trainer(device, capture=True, serving=60, robust=None, finish=0.0, latent=0, codes=0):
+def _trainer(device, capture=True, serving=60, robust=None, finish=0.0, latent=0, codes=0, code_scales=False):
     scene = make_synthetic_scene(hidden="mug", level="object", width=96, height=72, n_train=4, n_test=1,
                                  n_points=600, device=device)
     secure = apply_overrides(SecureConfig(payload="object", robust=robust, hidden_finish=finish),
                              {"strategy.mode": "cover", "hidden_offsets": 4, "hidden_width": 16,
                               "hidden_anchors": serving, "hidden_capture": capture, "hidden_latent": latent,
-                              "hidden_codes": codes})
+                              "hidden_codes": codes, "hidden_code_scales": code_scales})
     torch.manual_seed(0)
     return SecureTrainer(scene, TrainConfig(iterations=10, seed=0, raster=RasterOptions(tile_size=8)), secure,
                          device=device)
@@ -56,9 +56,9 @@ def _render_and_grads(t, capture, weights, compact=True, replay_raster=False, an
 
 
 @pytest.mark.skipif(TEST_DEVICE != "cuda", reason="CUDA graphs: SECUREGS_TEST_DEVICE=cuda on a GPU machine")
-@pytest.mark.parametrize("latent, codes", [(0, 0), (4, 0), (0, 256)])
-def test_the_replayed_decoding_renders_and_differentiates_as_the_eager_one(latent, codes):
-    t = _trainer("cuda", latent=latent, codes=codes)
+@pytest.mark.parametrize("latent, codes, code_scales", [(0, 0, False), (4, 0, False), (0, 256, False), (0, 256, True)])
+def test_the_replayed_decoding_renders_and_differentiates_as_the_eager_one(latent, codes, code_scales):
+    t = _trainer("cuda", latent=latent, codes=codes, code_scales=code_scales)
     for _ in range(3):
         t.step()
     weights = torch.rand(t.scene.train[1].height, t.scene.train[1].width, 3, device="cuda")

@@ -148,13 +148,15 @@ def test_the_latent_grid_reads_contracted_box_positions_and_starts_as_no_grid():
     private.set_box([1.0, 1.0, 1.0], [3.0, 5.0, 7.0])  # centre (2, 3, 4), half-extent (1, 2, 3)
     feat = torch.randn(4, 2)
     xyz = torch.tensor([[2.0, 3.0, 4.0], [3.0, 3.0, 4.0], [2.0, 3.0, 1e6], [2.0, -1e6, 4.0]])
-    assert torch.equal(private.feature_source(xyz, feat), feat)  # zero at the start: the features themselves
+    log_scaling = torch.randn(4, 6)
+    assert torch.equal(private.anchor_source(xyz, feat, log_scaling)[0], feat)  # zero at the start: the features themselves
     with torch.no_grad():
         # Channel 0 holds the x cell index, channel 1 the z cell index (grid axes: z, y, x).
         index = torch.arange(3.0)
         private.latent_grid.grid[0, 0] = index[None, None, :]
         private.latent_grid.grid[0, 1] = index[:, None, None]
-    latent = private.feature_source(xyz, torch.zeros(4, 2))
+    latent, scaling = private.anchor_source(xyz, torch.zeros(4, 2), log_scaling)
+    assert scaling is log_scaling  # the grid feeds the features alone
     # The centre reads the middle cell; the box's face (p = 1) lies halfway out (u = p / (1 + |p|) = 0.5,
     # cell 1.5); far outside reaches the border cells, axis by axis.
     expected = torch.tensor([[1.0, 1.0], [1.5, 1.0], [1.0, 2.0], [1.0, 1.0]])
@@ -173,23 +175,53 @@ def test_each_anchor_reads_the_code_of_its_own_cell_and_the_codes_start_as_none(
     private.set_box([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
     cell = 2.0 / CODE_CELLS  # a cell's width in u = p / (1 + |p|), about its width in p near the centre
     xyz = torch.tensor([[0.1, 0.2, 0.3], [0.1 + 0.2 * cell, 0.2, 0.3], [0.1 + 4 * cell, 0.2, 0.3], [-0.5, 3.0, 20.0]])
-    feat = torch.randn(4, 2)
-    assert torch.equal(private.feature_source(xyz, feat), feat)  # zero at the start: the features themselves
+    feat, log_scaling = torch.randn(4, 2), torch.randn(4, 6)
+    assert torch.equal(private.anchor_source(xyz, feat, log_scaling)[0], feat)  # zero at the start: the features
     with torch.no_grad():
         private.codes.table.copy_(torch.arange(4096.0)[:, None].expand(4096, 2))
-    rows = private.feature_source(xyz, torch.zeros(4, 2))[:, 0]
+
+    def code_rows(where):
+        return private.anchor_source(where, torch.zeros(len(where), 2), log_scaling[:len(where)])[0][:, 0]
+    rows = code_rows(xyz)
     # One cell, one code; another cell its own (these three cells hash to three rows).
     assert rows[0] == rows[1] and len({rows[0].item(), rows[2].item(), rows[3].item()}) == 3
     # An anchor's code depends on its position alone: a release that lost anchors reads the same codes.
-    assert torch.equal(private.feature_source(xyz[2:], torch.zeros(2, 2))[:, 0], rows[2:])
+    assert torch.equal(code_rows(xyz[2:]), rows[2:])
+    # Without the scale part the scalings are the public ones.
+    assert private.anchor_source(xyz, feat, log_scaling)[1] is log_scaling
     # The hidden loss's gradient reaches the rows read, and no other.
     private.codes.table.grad = None
-    private.feature_source(xyz, torch.zeros(4, 2)).sum().backward()
+    code_rows(xyz).sum().backward()
     assert int((private.codes.table.grad.abs().sum(1) > 0).sum()) == 3
     with pytest.raises(ValueError, match="frame='box'"):
         PrivateHeads(ScaffoldHeads(2, 2), codes=8)
     with pytest.raises(ValueError, match="hidden_codes"):
         SecureConfig(hidden_codes=-1)
+
+
+def test_scale_codes_add_to_the_hidden_gaussians_log_scales_alone():
+    """With ``code_scales`` an anchor's code adds to its log scaling l_v[3:] (what the hidden
+    Gaussians' scales multiply), not to l_v[:3]; zero at the start; a key records it."""
+    from securegs_warp.model import ScaffoldHeads
+    from securegs_warp.secure.heads import PrivateHeads
+
+    private = PrivateHeads(ScaffoldHeads(2, 2), frame="box", n_hidden=2, width=8, codes=64, code_scales=True)
+    private.set_box([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
+    xyz, feat, log_scaling = torch.randn(5, 3), torch.randn(5, 2), torch.randn(5, 6)
+    same_feat, same_scaling = private.anchor_source(xyz, feat, log_scaling)
+    assert torch.equal(same_feat, feat) and torch.equal(same_scaling, log_scaling)
+    with torch.no_grad():
+        private.codes.table.copy_(torch.arange(64.0)[:, None] * torch.tensor([1.0, 2.0, 10.0, 20.0, 30.0]))
+    out_feat, out_scaling = private.anchor_source(xyz, feat, log_scaling)
+    row = (out_feat - feat)[:, 0]
+    assert torch.equal(out_scaling[:, :3], log_scaling[:, :3])
+    assert torch.allclose(out_scaling[:, 3:] - log_scaling[:, 3:], row[:, None] * torch.tensor([10.0, 20.0, 30.0]))
+    assert private.describe()["code_scales"] and not PrivateHeads(ScaffoldHeads(2, 2), frame="box",
+                                                                   codes=8).describe()["code_scales"]
+    with pytest.raises(ValueError, match="needs codes"):
+        PrivateHeads(ScaffoldHeads(2, 2), frame="box", code_scales=True)
+    with pytest.raises(ValueError, match="hidden_codes"):
+        SecureConfig(hidden_code_scales=True)
 
 
 def test_the_exported_hidden_gaussians_are_those_the_latent_grid_renders(scene):
@@ -234,6 +266,27 @@ def test_the_hidden_dilation_is_in_the_key_and_leaves_the_public_render_alone(tm
     assert PrivateHeads(model.heads, **described).eps2d is None
     with pytest.raises(ValueError, match="hidden_eps2d must be >= 0"):
         SecureConfig(hidden_eps2d=-1.0)
+
+
+def test_a_key_with_scale_codes_opens_and_its_codes_scale_the_hidden_gaussians(tmp_path):
+    """--hidden-codes with --hidden-code-scales: the key records both, opens with its table's scale
+    columns, and those columns multiply the hidden Gaussians' scales (the release's are untouched)."""
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
+                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", "--hidden-codes", "64",
+                 "--hidden-code-scales", "--hidden-feature-grad", "0", "--hidden-scaling-grad", "0", *TINY]) == 0
+    model, meta = open_container(out / "public", out / "key.safetensors")
+    assert meta["heads"]["codes"] == 64 and meta["heads"]["code_scales"]
+    d = model.anchors.feat.shape[1]
+    assert model.private.codes.table.shape == (64, d + 3)
+    cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+    with torch.no_grad():
+        before = model.hidden_gaussians(cam)["scales"]
+        public = model.render(cam, RasterOptions(tile_size=8))["image"]
+        model.private.codes.table[:, d:] += 0.5
+        after = model.hidden_gaussians(cam)["scales"]
+        assert torch.equal(model.render(cam, RasterOptions(tile_size=8))["image"], public)
+    assert after.shape == before.shape and torch.allclose(after, before * math.exp(0.5), rtol=1e-5)
 
 
 def test_the_box_encoding_holds_octaves_of_the_position():

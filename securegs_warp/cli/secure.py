@@ -67,6 +67,8 @@ SECURE_FLAGS = (
                                                 "object's neighbourhood (default 0: none)"),
     ("--hidden-codes", "secure.hidden_codes", "box frame: rows of the key's private per-anchor codes, added to "
                                               "the serving anchors' features (default 0: none)"),
+    ("--hidden-code-scales", "secure.hidden_code_scales", "box frame: the codes add to the serving anchors' "
+                                                          "scalings too (needs --hidden-codes)"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-eps2d", "secure.hidden_eps2d", "the hidden render's screen-space dilation, kept in the key (default: "
                                               "the public render's, 0.3)"),

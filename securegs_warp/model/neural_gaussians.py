@@ -48,9 +48,10 @@ OffsetSource = Callable[[AnchorViewInputs], torch.Tensor]
 """Maps :class:`AnchorViewInputs` to world-space displacements [Nv, k, 3] of the k Gaussians from
 their anchor."""
 
-FeatureSource = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-"""Maps anchor positions [Nv, 3] and features [Nv, d] to the features [Nv, d] the heads decode (a
-key's private latent added to the public feature, see ``secure.heads.LatentGrid``)."""
+AnchorSource = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+"""Maps anchor positions [Nv, 3], features [Nv, d] and log scalings [Nv, 6] to the features [Nv, d]
+and log scalings [Nv, 6] the heads decode (a key's private latent and codes added to the public
+ones, see ``secure.heads.PrivateHeads``)."""
 
 RowDecoder = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], tuple]
 """Maps anchor positions [Nv, 3], features [Nv, d], log scalings [Nv, 6] and the camera centre [3]
@@ -70,7 +71,7 @@ def generate_neural_gaussians(
     *,
     camera_index: int | None = None,
     offset_source: OffsetSource = stored_offsets,
-    feature_source: FeatureSource | None = None,
+    anchor_source: AnchorSource | None = None,
     feature_grad: float = 1.0,
     scaling_grad: float = 1.0,
     rows: RowDecoder | None = None,
@@ -94,14 +95,15 @@ def generate_neural_gaussians(
         visible_mask: [N] bool, the anchors to decode (see :func:`visible_anchor_mask`); None: all.
         camera_index: camera row of the heads' appearance embedding, when they have one.
         offset_source: where the Gaussians sit relative to their anchor; default the stored offsets.
-        feature_source: what the heads decode instead of the anchors' own features (before the
-            feature bank), from their positions and features; None: the features themselves.
+        anchor_source: what the heads decode instead of the anchors' own features (before the
+            feature bank) and log scalings, from their positions, features and log scalings; None:
+            the anchors' own.
         feature_grad, scaling_grad: how much of this decoding's gradient reaches the anchor features
             f_v and scalings l_v (1: all, 0: none, between: scaled; the forward pass is unchanged).
             SecureGS's hidden pass reads these public attributes and may move them less than the
             public pass does, so that the public file is shaped mainly by the public loss.
         rows: a ``RowDecoder`` that decodes the visible anchors' rows in place of :func:`decode_rows`
-            with ``heads``, ``offset_source``, ``feature_source`` and ``camera_index`` (which it then
+            with ``heads``, ``offset_source``, ``anchor_source`` and ``camera_index`` (which it then
             ignores; its k must be ``heads.n_offsets``): the same decoding replayed from CUDA graphs
             (``secure.captured``).
         anchor_index: [Nv] long, the indices of ``visible_mask``'s True entries when the caller
@@ -154,7 +156,7 @@ def generate_neural_gaussians(
     if rows is None:
         neural_opacity, means, quats, scales, colors = decode_rows(
             heads, offset_source, xyz, feat, log_scaling, camera_center.to(xyz), camera_index=camera_index,
-            anchor_index=anchor_index, offsets=model.offsets[anchor_index], feature_source=feature_source)
+            anchor_index=anchor_index, offsets=model.offsets[anchor_index], anchor_source=anchor_source)
     else:
         neural_opacity, means, quats, scales, colors = rows(xyz, feat, log_scaling, camera_center.to(xyz))
 
@@ -177,12 +179,12 @@ def generate_neural_gaussians(
 def decode_rows(heads: ScaffoldHeads, offset_source: OffsetSource, xyz: torch.Tensor, feat: torch.Tensor,
                 log_scaling: torch.Tensor, camera_center: torch.Tensor, *, camera_index: int | None = None,
                 anchor_index: torch.Tensor | None = None, offsets: torch.Tensor | None = None,
-                feature_source: FeatureSource | None = None) -> tuple:
+                anchor_source: AnchorSource | None = None) -> tuple:
     """Every one of the k Gaussians of each of Nv anchors, before the opacity test (with ``heads``
     and ``offset_source`` bound, a ``RowDecoder``).
 
     Args:
-        heads, offset_source, feature_source, camera_index: as ``generate_neural_gaussians``.
+        heads, offset_source, anchor_source, camera_index: as ``generate_neural_gaussians``.
         xyz: [Nv, 3] the anchors' positions; feat: [Nv, d] their features (before the feature bank);
         log_scaling: [Nv, 6] their scalings l_v (log); camera_center: [3].
         anchor_index, offsets: [Nv] and [Nv, k, 3], the anchors' model indices and stored offsets,
@@ -196,8 +198,8 @@ def decode_rows(heads: ScaffoldHeads, offset_source: OffsetSource, xyz: torch.Te
     ob_view = xyz - camera_center
     ob_dist = ob_view.norm(dim=1, keepdim=True)
     ob_view = ob_view / ob_dist
-    if feature_source is not None:
-        feat = feature_source(xyz, feat)
+    if anchor_source is not None:
+        feat, log_scaling = anchor_source(xyz, feat, log_scaling)
     feat = heads.blend_features(feat, ob_view, ob_dist)
     scaling = torch.exp(log_scaling)
     inputs = AnchorViewInputs(anchor_index, xyz, feat, ob_view, ob_dist, scaling, offsets)

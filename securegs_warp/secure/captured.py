@@ -53,7 +53,7 @@ class _Rows(nn.Module):
 
     def forward(self, xyz, feat, log_scaling, centre):
         return decode_rows(self.private.decoder, self.private.hidden_offsets, xyz, feat, log_scaling, centre,
-                           feature_source=self.private.feature_source)
+                           anchor_source=self.private.anchor_source)
 
 
 class _Graph:
@@ -90,7 +90,7 @@ class CapturedRows:
                 or (xyz.is_cuda and torch.cuda.is_current_stream_capturing())
                 or any(p.grad is not None for p in sources[:-1])):
             return decode_rows(self.private.decoder, self.private.hidden_offsets, xyz, feat, log_scaling, centre,
-                               feature_source=self.private.feature_source)
+                               anchor_source=self.private.anchor_source)
         if graph is None or len(graph.sources) != len(sources) or any(a is not b for a, b in zip(graph.sources, sources)):
             samples = (xyz.detach().clone(), feat.detach().clone().requires_grad_(feat.requires_grad),
                        log_scaling.detach().clone().requires_grad_(log_scaling.requires_grad), centre.detach().clone())

@@ -37,7 +37,7 @@ def contract(where: torch.Tensor) -> torch.Tensor:
 class LatentGrid(nn.Module):
     """A key's private latent: a dense grid of features (``grid`` [1, d, r, r, r]) over the box's
     neighbourhood, read trilinearly at each anchor's position and added to the anchor's public
-    feature before the private heads decode it (``feature_source`` of ``decode_rows``). Without it
+    feature before the private heads decode it (``anchor_source`` of ``decode_rows``). Without it
     the hidden Gaussians' colours, opacities and shapes are functions of the public features alone,
     which the cover's loss shapes; the grid gives the key free parameters near the object without
     putting any in the release (d·r³ floats in the key). Positions are read in the box's frame,
@@ -60,27 +60,37 @@ class LatentGrid(nn.Module):
 
 
 class AnchorCodes(nn.Module):
-    """A key's private per-anchor features: a table of codes (``table`` [rows, d]), each anchor
-    reading the row that its cell of CODE_CELLS³ over the box's ``contract``-ed neighbourhood hashes
-    to, added to its public feature before the private heads decode it. The latent grid is smooth
-    over space; a code is the anchor's own (anchors of one cell, or of cells hashed to one row,
-    share it). It is the key's counterpart of the hidden loss's gradient into the public features
-    (``SecureConfig.hidden_feature_grad``), which fits the released features to the hidden object
-    and so costs the cover: with codes that gradient can be 0. Anchors keep their positions under
-    pruning, so a pruned release reads its survivors' codes as trained. Zero at the start."""
+    """A key's private per-anchor features: a table of codes (``table`` [rows, d] or, with
+    ``scales``, [rows, d + 3]), each anchor reading the row that its cell of CODE_CELLS³ over the
+    box's ``contract``-ed neighbourhood hashes to, added to its public feature (the first d columns)
+    and to its public log scaling l_v[3:] (the last 3, with ``scales``) before the private heads
+    decode it. The latent grid is smooth over space; a code is the anchor's own (anchors of one
+    cell, or of cells hashed to one row, share it). It is the key's counterpart of the hidden loss's
+    gradient into the public features and scalings (``SecureConfig.hidden_feature_grad``,
+    ``hidden_scaling_grad``), which fits the released attributes to the hidden object and so costs
+    the cover: with codes those gradients can be 0. The scale part matters because the hidden
+    Gaussians' scales are exp(l_v[3:]) · sigmoid(F_cov†): without it, or the scaling gradient, no
+    hidden Gaussian can outgrow the scale the cover gave its anchor. Anchors keep their positions
+    under pruning, so a pruned release reads its survivors' codes as trained. Zero at the start."""
 
-    def __init__(self, feat_dim: int, rows: int):
+    def __init__(self, feat_dim: int, rows: int, scales: bool = False):
         super().__init__()
         if rows < 1:
             raise ValueError(f"a code table needs at least one row, got {rows}")
-        self.table = nn.Parameter(torch.zeros(int(rows), feat_dim))
+        self.feat_dim = feat_dim
+        self.table = nn.Parameter(torch.zeros(int(rows), feat_dim + (3 if scales else 0)))
 
     @property
     def rows(self) -> int:
         return self.table.shape[0]
 
+    @property
+    def scales(self) -> bool:
+        """Whether the codes add to the anchors' log scalings too."""
+        return self.table.shape[1] > self.feat_dim
+
     def forward(self, where: torch.Tensor) -> torch.Tensor:
-        """[N, d]: the codes of anchors at box-frame positions where [N, 3]."""
+        """[N, d] (or [N, d + 3] with ``scales``): the codes of anchors at box-frame positions where [N, 3]."""
         cell = ((contract(where) + 1.0) * (0.5 * CODE_CELLS)).floor().long().clamp(0, CODE_CELLS - 1)
         # Teschner et al.'s spatial hash (three large primes, XOR-ed).
         row = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ (cell[:, 2] * 83492791)
@@ -123,6 +133,7 @@ class PrivateHeads(nn.Module):
         position the private heads add to its feature (0: none; the features alone).
     codes: in the box frame, the rows of an ``AnchorCodes`` table whose code for each anchor the
         private heads add to its feature too (0: none).
+    code_scales: the codes add to each anchor's log scaling l_v[3:] as well (``AnchorCodes`` scales).
     serving: in the box frame, how many anchors, nearest the box first, decode hidden Gaussians (0:
         every anchor that the view shows). Training keeps ``serving_radius`` (a buffer in the units of
         ``box_distance``, saved in the key) just beyond the serving-th nearest anchor
@@ -138,7 +149,8 @@ class PrivateHeads(nn.Module):
                  bit_cell: float | None = None,
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0,
-                 encoding: int = 0, depth: int = 1, latent: int = 0, codes: int = 0, eps2d: float | None = None):
+                 encoding: int = 0, depth: int = 1, latent: int = 0, codes: int = 0, code_scales: bool = False,
+                 eps2d: float | None = None):
         super().__init__()
         if eps2d is not None and not 0.0 <= eps2d < math.inf:
             raise ValueError(f"eps2d must be >= 0 and finite, got {eps2d}")
@@ -153,6 +165,8 @@ class PrivateHeads(nn.Module):
         if codes and (frame != "box" or not hidden):
             raise ValueError("private codes lie over the box frame's positions and feed the hidden decoder: "
                              "they need frame='box' and hidden=True")
+        if code_scales and not codes:
+            raise ValueError("code_scales adds the codes to the anchors' scalings: it needs codes (rows >= 1)")
         if latent and (frame != "box" or not hidden):
             raise ValueError("a latent grid lies over the box frame's positions and feeds the hidden decoder: "
                              "it needs frame='box' and hidden=True")
@@ -169,7 +183,7 @@ class PrivateHeads(nn.Module):
         self.offset_mlp = make_mlp(d + 3 * (1 + 2 * self.encoding), w, 3 * k, depth=self.depth) \
             if hidden and offsets else None
         self.latent_grid = LatentGrid(d, latent) if latent else None
-        self.codes = AnchorCodes(d, codes) if codes else None
+        self.codes = AnchorCodes(d, codes, scales=code_scales) if codes else None
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
@@ -200,18 +214,25 @@ class PrivateHeads(nn.Module):
         return raw * inputs.scaling[:, None, :3] if self.scale_offsets else raw
 
     @property
-    def feature_source(self):
-        """The ``FeatureSource`` of the hidden decoding: the public features plus the latent grid's
-        and the codes' values at each anchor (None with neither)."""
-        return None if self.latent_grid is None and self.codes is None else self._with_latent
+    def anchor_source(self):
+        """The ``AnchorSource`` of the hidden decoding: the public features plus the latent grid's
+        and the codes' values at each anchor, the public log scalings plus the codes' scale part
+        (None with neither grid nor codes)."""
+        return None if self.latent_grid is None and self.codes is None else self._private_inputs
 
-    def _with_latent(self, xyz: torch.Tensor, feat: torch.Tensor) -> torch.Tensor:
-        """[Nv, d]: features feat [Nv, d] plus the grid's and the codes' values at anchor positions xyz [Nv, 3]."""
+    def _private_inputs(self, xyz: torch.Tensor, feat: torch.Tensor,
+                        log_scaling: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Features [Nv, d] and log scalings [Nv, 6] of anchors at positions xyz [Nv, 3], with the
+        grid's and the codes' values added."""
         where = self.box_position(xyz)
-        for latent in (self.latent_grid, self.codes):
-            if latent is not None:
-                feat = feat + latent(where)
-        return feat
+        if self.latent_grid is not None:
+            feat = feat + self.latent_grid(where)
+        if self.codes is not None:
+            code = self.codes(where)
+            feat = feat + code[:, :self.feat_dim]
+            if self.codes.scales:
+                log_scaling = torch.cat([log_scaling[:, :3], log_scaling[:, 3:] + code[:, self.feat_dim:]], dim=1)
+        return feat, log_scaling
 
     def box_position(self, xyz: torch.Tensor) -> torch.Tensor:
         """[N, 3]: anchor positions [N, 3] in the box's frame (the box spans [-1, 1]³); no gradient
@@ -315,4 +336,5 @@ class PrivateHeads(nn.Module):
                 "hidden": self.decoder is not None, "frame": self.frame, "n_hidden": self.n_offsets,
                 "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth,
                 "latent": 0 if self.latent_grid is None else self.latent_grid.resolution,
-                "codes": 0 if self.codes is None else self.codes.rows, "eps2d": self.eps2d}
+                "codes": 0 if self.codes is None else self.codes.rows,
+                "code_scales": self.codes is not None and self.codes.scales, "eps2d": self.eps2d}

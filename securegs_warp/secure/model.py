@@ -77,7 +77,7 @@ class SecureModel(ScaffoldModel):
         if private.eps2d is not None:
             options = dataclasses.replace(options or RasterOptions(), eps2d=private.eps2d)
         return render_view(anchors, private.decoder, camera, background, options, camera_index=camera_index,
-                           offset_source=source, feature_source=private.feature_source, feature_grad=feature_grad,
+                           offset_source=source, anchor_source=private.anchor_source, feature_grad=feature_grad,
                            scaling_grad=scaling_grad, anchor_mask=mask, anchor_index=index, rows=rows,
                            compact=compact, keep=keep)
 
@@ -133,7 +133,7 @@ class SecureModel(ScaffoldModel):
             raise ValueError("this payload hides no image: there are no hidden Gaussians")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
         return decode_all(self.anchors, private.decoder, camera, offset_source=source,
-                          feature_source=private.feature_source, anchor_mask=private.serving_mask(self.anchors.xyz))
+                          anchor_source=private.anchor_source, anchor_mask=private.serving_mask(self.anchors.xyz))
 
     def _explicit_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
