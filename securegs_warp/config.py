@@ -286,6 +286,8 @@ class SecureConfig:
         codes"). None: BOX_FRAME_DEFAULTS in the box frame; the anchor frame has none.
     hidden_code_scales: the codes add to the serving anchors' log scalings too (``AnchorCodes``
         scales), taking the place of hidden_scaling_grad's share as well; needs hidden_codes.
+    hidden_code_cells: the codes' cells per axis of the contracted box frame (``AnchorCodes``
+        cells; saved in the key); None: CODE_CELLS.
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
@@ -343,6 +345,7 @@ class SecureConfig:
     hidden_latent: int | None = None
     hidden_codes: int | None = None
     hidden_code_scales: bool = False
+    hidden_code_cells: int | None = None
     hidden_encoding: int | None = None
     hidden_depth: int | None = None
     hidden_eps2d: float | None = None
@@ -405,12 +408,13 @@ class SecureConfig:
 
     def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
-        serving, encoding, depth, latent, codes, code_scales, eps2d) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
+        serving, encoding, depth, latent, codes, code_scales, code_cells, eps2d) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
         density ``mode`` (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
         given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors,
                  "encoding": self.hidden_encoding, "depth": self.hidden_depth, "latent": self.hidden_latent,
-                 "codes": self.hidden_codes, "code_scales": self.hidden_code_scales, "eps2d": self.hidden_eps2d}
+                 "codes": self.hidden_codes, "code_scales": self.hidden_code_scales,
+                 "code_cells": self.hidden_code_cells, "eps2d": self.hidden_eps2d}
         # The anchor frame leaves what is not given to PrivateHeads' own defaults (the public k and d).
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {}
         return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None}}
@@ -429,6 +433,10 @@ class SecureConfig:
             raise ValueError(f"hidden_eps2d must be >= 0 and finite, got {self.hidden_eps2d}")
         if self.hidden_codes is not None and self.hidden_codes < 0:
             raise ValueError(f"hidden_codes must be 0 (none) or a number of rows >= 1, got {self.hidden_codes}")
+        if self.hidden_code_cells is not None and self.hidden_code_cells < 1:
+            raise ValueError(f"hidden_code_cells must be >= 1, got {self.hidden_code_cells}")
+        if self.hidden_code_cells is not None and not self.hidden_codes:
+            raise ValueError("hidden_code_cells sizes the codes' cells: it needs hidden_codes >= 1")
         if self.hidden_code_scales and not self.hidden_codes:
             raise ValueError("hidden_code_scales adds the codes to the anchors' scalings: it needs hidden_codes >= 1")
         if self.hidden_latent is not None and (self.hidden_latent < 0 or self.hidden_latent == 1):

@@ -187,6 +187,12 @@ def test_each_anchor_reads_the_code_of_its_own_cell_and_the_codes_start_as_none(
     assert rows[0] == rows[1] and len({rows[0].item(), rows[2].item(), rows[3].item()}) == 3
     # An anchor's code depends on its position alone: a release that lost anchors reads the same codes.
     assert torch.equal(code_rows(xyz[2:]), rows[2:])
+    # Coarser cells share codes: with one cell an axis every anchor reads one row.
+    from securegs_warp.secure.heads import AnchorCodes
+    one = AnchorCodes(2, 4096, cells=1)
+    with torch.no_grad():
+        one.table.copy_(torch.arange(4096.0)[:, None].expand(4096, 2))
+    assert len(set(one(private.box_position(xyz))[:, 0].tolist())) == 1
     # Without the scale part the scalings are the public ones.
     assert private.anchor_source(xyz, feat, log_scaling)[1] is log_scaling
     # The hidden loss's gradient reaches the rows read, and no other.
@@ -222,6 +228,8 @@ def test_scale_codes_add_to_the_hidden_gaussians_log_scales_alone():
         PrivateHeads(ScaffoldHeads(2, 2), frame="box", code_scales=True)
     with pytest.raises(ValueError, match="hidden_codes"):
         SecureConfig(hidden_code_scales=True)
+    with pytest.raises(ValueError, match="hidden_codes"):
+        SecureConfig(hidden_code_cells=64)
 
 
 def test_the_exported_hidden_gaussians_are_those_the_latent_grid_renders(scene):
@@ -269,14 +277,22 @@ def test_the_hidden_dilation_is_in_the_key_and_leaves_the_public_render_alone(tm
 
 
 def test_a_key_with_scale_codes_opens_and_its_codes_scale_the_hidden_gaussians(tmp_path):
-    """--hidden-codes with --hidden-code-scales: the key records both, opens with its table's scale
-    columns, and those columns multiply the hidden Gaussians' scales (the release's are untouched)."""
+    """--hidden-codes with --hidden-code-scales and --hidden-code-cells: the key records them, opens
+    with its table's scale columns and its cells, and the scale columns multiply the hidden
+    Gaussians' scales (the release's are untouched); a key written before the cells were recorded
+    opens with CODE_CELLS."""
+    from securegs_warp.secure.heads import CODE_CELLS, PrivateHeads
+
     out = tmp_path / "c"
     assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
                  "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", "--hidden-codes", "64",
-                 "--hidden-code-scales", "--hidden-feature-grad", "0", "--hidden-scaling-grad", "0", *TINY]) == 0
+                 "--hidden-code-scales", "--hidden-code-cells", "32", "--hidden-feature-grad", "0",
+                 "--hidden-scaling-grad", "0", *TINY]) == 0
     model, meta = open_container(out / "public", out / "key.safetensors")
-    assert meta["heads"]["codes"] == 64 and meta["heads"]["code_scales"]
+    assert meta["heads"]["codes"] == 64 and meta["heads"]["code_scales"] and meta["heads"]["code_cells"] == 32
+    assert model.private.codes.cells == 32
+    older = {k: v for k, v in meta["heads"].items() if k != "code_cells"}
+    assert PrivateHeads(model.heads, **older).codes.cells == CODE_CELLS
     d = model.anchors.feat.shape[1]
     assert model.private.codes.table.shape == (64, d + 3)
     cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]

@@ -69,6 +69,8 @@ SECURE_FLAGS = (
                                               "the serving anchors' features (default 0: none)"),
     ("--hidden-code-scales", "secure.hidden_code_scales", "box frame: the codes add to the serving anchors' "
                                                           "scalings too (needs --hidden-codes)"),
+    ("--hidden-code-cells", "secure.hidden_code_cells", "box frame: the codes' cells per axis of the object's "
+                                                        "contracted neighbourhood, kept in the key (default: 256)"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-eps2d", "secure.hidden_eps2d", "the hidden render's screen-space dilation, kept in the key (default: "
                                               "the public render's, 0.3)"),

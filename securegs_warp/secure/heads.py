@@ -21,9 +21,10 @@ FRAMES = ("anchor", "box")
 INSIDE_TIE_BREAK = 1e-3
 
 
-# The cells of a key's private codes, per axis of the contracted box frame: fine enough that serving
-# anchors rarely share a cell, and so a code (docs/results.md, "Private codes in the key", counts
-# them in trained containers).
+# The cells of a key's private codes, per axis of the contracted box frame, unless the key names its
+# own: fine enough that serving anchors rarely share a cell, and so a code (docs/results.md, "Private
+# codes in the key", counts them in trained containers). Coarser cells share codes among
+# neighbouring anchors and lose less to moved anchors ("Private codes at 1080p in the garden").
 CODE_CELLS = 256
 
 
@@ -61,7 +62,7 @@ class LatentGrid(nn.Module):
 
 class AnchorCodes(nn.Module):
     """A key's private per-anchor features: a table of codes (``table`` [rows, d] or, with
-    ``scales``, [rows, d + 3]), each anchor reading the row that its cell of CODE_CELLS³ over the
+    ``scales``, [rows, d + 3]), each anchor reading the row that its cell of ``cells``³ over the
     box's ``contract``-ed neighbourhood hashes to, added to its public feature (the first d columns)
     and to its public log scaling l_v[3:] (the last 3, with ``scales``) before the private heads
     decode it. The latent grid is smooth over space; a code is the anchor's own (anchors of one
@@ -73,11 +74,13 @@ class AnchorCodes(nn.Module):
     hidden Gaussian can outgrow the scale the cover gave its anchor. Anchors keep their positions
     under pruning, so a pruned release reads its survivors' codes as trained. Zero at the start."""
 
-    def __init__(self, feat_dim: int, rows: int, scales: bool = False):
+    def __init__(self, feat_dim: int, rows: int, scales: bool = False, cells: int = CODE_CELLS):
         super().__init__()
         if rows < 1:
             raise ValueError(f"a code table needs at least one row, got {rows}")
-        self.feat_dim = feat_dim
+        if cells < 1:
+            raise ValueError(f"codes need at least one cell an axis, got {cells}")
+        self.feat_dim, self.cells = feat_dim, int(cells)
         self.table = nn.Parameter(torch.zeros(int(rows), feat_dim + (3 if scales else 0)))
 
     @property
@@ -91,7 +94,7 @@ class AnchorCodes(nn.Module):
 
     def forward(self, where: torch.Tensor) -> torch.Tensor:
         """[N, d] (or [N, d + 3] with ``scales``): the codes of anchors at box-frame positions where [N, 3]."""
-        cell = ((contract(where) + 1.0) * (0.5 * CODE_CELLS)).floor().long().clamp(0, CODE_CELLS - 1)
+        cell = ((contract(where) + 1.0) * (0.5 * self.cells)).floor().long().clamp(0, self.cells - 1)
         # Teschner et al.'s spatial hash (three large primes, XOR-ed).
         row = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ (cell[:, 2] * 83492791)
         return self.table[row % self.rows]
@@ -134,6 +137,8 @@ class PrivateHeads(nn.Module):
     codes: in the box frame, the rows of an ``AnchorCodes`` table whose code for each anchor the
         private heads add to its feature too (0: none).
     code_scales: the codes add to each anchor's log scaling l_v[3:] as well (``AnchorCodes`` scales).
+    code_cells: the codes' cells per axis (``AnchorCodes`` cells; a key written before it was
+        recorded used CODE_CELLS).
     serving: in the box frame, how many anchors, nearest the box first, decode hidden Gaussians (0:
         every anchor that the view shows). Training keeps ``serving_radius`` (a buffer in the units of
         ``box_distance``, saved in the key) just beyond the serving-th nearest anchor
@@ -150,7 +155,7 @@ class PrivateHeads(nn.Module):
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0,
                  encoding: int = 0, depth: int = 1, latent: int = 0, codes: int = 0, code_scales: bool = False,
-                 eps2d: float | None = None):
+                 code_cells: int = CODE_CELLS, eps2d: float | None = None):
         super().__init__()
         if eps2d is not None and not 0.0 <= eps2d < math.inf:
             raise ValueError(f"eps2d must be >= 0 and finite, got {eps2d}")
@@ -183,7 +188,7 @@ class PrivateHeads(nn.Module):
         self.offset_mlp = make_mlp(d + 3 * (1 + 2 * self.encoding), w, 3 * k, depth=self.depth) \
             if hidden and offsets else None
         self.latent_grid = LatentGrid(d, latent) if latent else None
-        self.codes = AnchorCodes(d, codes, scales=code_scales) if codes else None
+        self.codes = AnchorCodes(d, codes, scales=code_scales, cells=code_cells) if codes else None
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
@@ -337,4 +342,5 @@ class PrivateHeads(nn.Module):
                 "width": self.width, "serving": self.serving, "encoding": self.encoding, "depth": self.depth,
                 "latent": 0 if self.latent_grid is None else self.latent_grid.resolution,
                 "codes": 0 if self.codes is None else self.codes.rows,
-                "code_scales": self.codes is not None and self.codes.scales, "eps2d": self.eps2d}
+                "code_scales": self.codes is not None and self.codes.scales,
+                "code_cells": CODE_CELLS if self.codes is None else self.codes.cells, "eps2d": self.eps2d}
