@@ -69,9 +69,9 @@ class AnchorCodes(nn.Module):
     cell, or of cells hashed to one row, share it). It is the key's counterpart of the hidden loss's
     gradient into the public features and scalings (``SecureConfig.hidden_feature_grad``,
     ``hidden_scaling_grad``), which fits the released attributes to the hidden object and so costs
-    the cover: with codes those gradients can be 0. The scale part matters because the hidden
-    Gaussians' scales are exp(l_v[3:]) · sigmoid(F_cov†): without it, or the scaling gradient, no
-    hidden Gaussian can outgrow the scale the cover gave its anchor. Anchors keep their positions
+    the cover: with codes those gradients can be 0. The scale part is there because a hidden
+    Gaussian's scale is exp(l_v[3:]) · sigmoid(F_cov†): without it, or the scalings' gradient, none
+    can outgrow the scale the cover gave its anchor. Anchors keep their positions
     under pruning, so a pruned release reads its survivors' codes as trained. Zero at the start."""
 
     def __init__(self, feat_dim: int, rows: int, scales: bool = False, cells: int = CODE_CELLS):
