@@ -24,6 +24,7 @@ from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
+from ..secure.heads import CODE_CELLS
 from ..secure.container import PUBLIC_DIR, KeyFile, KeyViews, default_key_path, open_container, save_container
 from ..secure.payload import SECRET_SEPARATOR, parse_secrets, recorded_payload
 from ..secure.robust import ROBUST_SYNTAX
@@ -70,7 +71,7 @@ SECURE_FLAGS = (
     ("--hidden-code-scales", "secure.hidden_code_scales", "box frame: the codes add to the serving anchors' "
                                                           "scalings too (needs --hidden-codes)"),
     ("--hidden-code-cells", "secure.hidden_code_cells", "box frame: the codes' cells per axis of the object's "
-                                                        "contracted neighbourhood, kept in the key (default: 256)"),
+                                                        f"contracted neighbourhood, kept in the key (default: {CODE_CELLS})"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-eps2d", "secure.hidden_eps2d", "the hidden render's screen-space dilation, kept in the key (default: "
                                               "the public render's, 0.3)"),
