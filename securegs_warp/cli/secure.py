@@ -24,8 +24,8 @@ from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
-from ..secure.heads import CODE_CELLS
 from ..secure.container import PUBLIC_DIR, KeyFile, KeyViews, default_key_path, open_container, save_container
+from ..secure.heads import CODE_CELLS
 from ..secure.payload import SECRET_SEPARATOR, parse_secrets, recorded_payload
 from ..secure.robust import ROBUST_SYNTAX
 from ..secure.trainer import secret_suffix
