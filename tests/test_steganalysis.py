@@ -169,7 +169,7 @@ def test_the_latent_grid_reads_contracted_box_positions_and_starts_as_no_grid():
 
 def test_each_anchor_reads_the_code_of_its_own_cell_and_the_codes_start_as_none():
     from securegs_warp.model import ScaffoldHeads
-    from securegs_warp.secure.heads import CODE_CELLS, PrivateHeads
+    from securegs_warp.secure.heads import CODE_CELLS, AnchorCodes, PrivateHeads
 
     private = PrivateHeads(ScaffoldHeads(2, 2), frame="box", n_hidden=2, width=8, codes=4096)
     private.set_box([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
@@ -188,7 +188,6 @@ def test_each_anchor_reads_the_code_of_its_own_cell_and_the_codes_start_as_none(
     # An anchor's code depends on its position alone: a release that lost anchors reads the same codes.
     assert torch.equal(code_rows(xyz[2:]), rows[2:])
     # Coarser cells share codes: with one cell an axis every anchor reads one row.
-    from securegs_warp.secure.heads import AnchorCodes
     one = AnchorCodes(2, 4096, cells=1)
     with torch.no_grad():
         one.table.copy_(torch.arange(4096.0)[:, None].expand(4096, 2))
