@@ -2,6 +2,7 @@
 with other options refused with the field named."""
 import json
 import math
+from types import SimpleNamespace
 
 import pytest
 
@@ -21,6 +22,7 @@ from securegs_warp.config import (
 )
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.strategies import RegionAwareStrategy
+from securegs_warp.train.trainer import ScaffoldTrainer
 
 TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
 
@@ -171,3 +173,12 @@ def test_hide_records_the_robust_training_and_margin_it_chose(tmp_path, capsys):
     assert main(old + ["--resume"]) == 2
     assert "secure.robust" in capsys.readouterr().err
     assert main(old + ["--resume", "--robust", "none"]) == 0
+
+
+def test_the_codes_and_the_latent_grid_train_on_schedules_of_their_own():
+    """The codes (a key's per-anchor features) keep feature_lr by default; the latent grid decays."""
+    assert TrainConfig().code_lr == (TrainConfig().feature_lr,) * 2
+    view = SimpleNamespace(config=TrainConfig(code_lr=(0.02, 0.002), latent_lr=(0.006, 0.0006)))
+    assert ScaffoldTrainer._mlp_schedule(view, "private_codes") == (0.02, 0.002)
+    assert ScaffoldTrainer._mlp_schedule(view, "private2_codes") == (0.02, 0.002)
+    assert ScaffoldTrainer._mlp_schedule(view, "private_latent") == (0.006, 0.0006)
