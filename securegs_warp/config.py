@@ -112,8 +112,8 @@ class TrainConfig:
     mlp_offset_lr: tuple = (0.004, 0.0004)  # SecureGS's private offset predictor F_o† (no paper value)
     latent_lr: tuple = (0.0075, 0.00075)  # SecureGS's private latent grid (starts at feature_lr; no paper value)
     # SecureGS's private codes, the key's counterpart of the public features: at feature_lr, held as
-    # Scaffold-GS holds the features' (decaying it to a tenth cost the hidden object about a dB:
-    # docs/results.md, "The codes' learning rate").
+    # Scaffold-GS holds the features' rate (on the latent grid's decaying schedule the hidden object
+    # came out lower: docs/results.md, "The codes' learning rate").
     code_lr: tuple = (0.0075, 0.0075)
     densify: bool = True
 
