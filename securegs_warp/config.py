@@ -111,10 +111,10 @@ class TrainConfig:
     appearance_lr: tuple = (0.05, 0.0005)
     mlp_offset_lr: tuple = (0.004, 0.0004)  # SecureGS's private offset predictor F_o† (no paper value)
     latent_lr: tuple = (0.0075, 0.00075)  # SecureGS's private latent grid (starts at feature_lr; no paper value)
-    # SecureGS's private codes, the key's counterpart of the public features: at feature_lr, held as
+    # SecureGS's private codes, the key's counterpart of the public features. None: feature_lr, held as
     # Scaffold-GS holds the features' rate (on the latent grid's decaying schedule the hidden object
     # came out lower: docs/results.md, "The codes' learning rate").
-    code_lr: tuple = (0.0075, 0.0075)
+    code_lr: tuple | None = None
     densify: bool = True
 
     def __post_init__(self):
@@ -125,6 +125,8 @@ class TrainConfig:
         for field in dataclasses.fields(self):
             if field.name.endswith("_lr"):
                 rates = getattr(self, field.name)
+                if rates is None:  # derived from another rate (code_lr)
+                    continue
                 pair = tuple(rates) if isinstance(rates, (tuple, list)) else (rates,)
                 if not (all(r > 0 for r in pair) or all(r == 0 for r in pair)):
                     raise ValueError(f"{field.name} must be positive (or all 0: frozen), got {rates}")

@@ -177,7 +177,8 @@ def test_hide_records_the_robust_training_and_margin_it_chose(tmp_path, capsys):
 
 def test_the_codes_and_the_latent_grid_train_on_schedules_of_their_own():
     """The codes (a key's per-anchor features) keep feature_lr by default; the latent grid decays."""
-    assert TrainConfig().code_lr == (TrainConfig().feature_lr,) * 2
+    held = SimpleNamespace(config=TrainConfig(feature_lr=0.005))
+    assert ScaffoldTrainer._mlp_schedule(held, "private_codes") == (0.005, 0.005)
     view = SimpleNamespace(config=TrainConfig(code_lr=(0.02, 0.002), latent_lr=(0.006, 0.0006)))
     assert ScaffoldTrainer._mlp_schedule(view, "private_codes") == (0.02, 0.002)
     assert ScaffoldTrainer._mlp_schedule(view, "private2_codes") == (0.02, 0.002)

@@ -58,7 +58,7 @@ class ScaffoldTrainer(ViewTrainer):
         c = self.config
         schedules = {"mlp_opacity": c.mlp_opacity_lr, "mlp_cov": c.mlp_cov_lr, "mlp_color": c.mlp_color_lr,
                      "mlp_featurebank": c.mlp_featurebank_lr, "appearance": c.appearance_lr,
-                     "mlp_offset": c.mlp_offset_lr, "latent": c.latent_lr, "codes": c.code_lr}
+                     "mlp_offset": c.mlp_offset_lr, "latent": c.latent_lr, "codes": c.code_lr or (c.feature_lr,) * 2}
         return schedules[group_name.split("_", 1)[1] if group_name.startswith("private") else group_name]
 
     def head_groups(self) -> dict:
