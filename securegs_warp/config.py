@@ -212,9 +212,18 @@ class StegaNeRFConfig:
 
 # The box frame's private decoder: k_hid hidden Gaussians from each of the `serving` anchors nearest
 # the hidden object (the key keeps the radius that takes them in), through MLPs `width` wide
-# (docs/results.md, "Geometric security", measures them).
+# (docs/results.md, "Geometric security", measures them). Private codes in the key (`codes` rows,
+# `code_cells` cells an axis) carry what the hidden loss would otherwise have written into the public
+# features, so the release trains as plain Scaffold-GS does (GRADIENT_SHARES): a cover closer to the
+# plain model and a release the audit tells apart less often, for some hidden fidelity at 1080p
+# (docs/results.md, "Private codes by default").
 BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1, "latent": 0,
-                      "codes": 0}
+                      "codes": 16384, "code_cells": 64}
+# The shares of the hidden loss's gradient that reach the public features and scalings (feature,
+# scaling) for a decoder without private codes: a small share on the features keeps the cover close
+# to plain Scaffold-GS and still lets the private heads read the hidden object from them
+# (docs/results.md, "What costs the cover its fidelity"). A decoder with codes takes none.
+GRADIENT_SHARES = (0.1, 1.0)
 # What ``robust`` "auto" trains a hidden object in the cover mode against, and the bit margin it
 # was measured with: the payload then survives random pruning, feature noise and purify for no
 # training time (docs/results.md, "Robust training by default").
@@ -246,8 +255,8 @@ class SecureConfig:
         plain Scaffold-GS, while the private heads carry more of the hidden payload. At 0 in the
         anchor frame the hidden branch is never learnt (the private heads cannot decode it from
         features nothing shapes for it); the box frame still learns it from the anchors' box
-        positions, less sharply, or as sharply for some objects with ``hidden_codes``.
-        docs/results.md has the measured trade-off behind the default 0.1.
+        positions and the key's codes. None: 0 for a secret whose decoder has private codes,
+        GRADIENT_SHARES otherwise (``gradient_shares``).
     feature_grad_until: the fraction of the run during which hidden_feature_grad applies (after it
         the public loss alone finishes the features).
     bit_margin: after every step each anchor feature is moved the least distance that makes its
@@ -293,7 +302,7 @@ class SecureConfig:
     hidden_code_scales: the codes add to the serving anchors' log scalings too (``AnchorCodes``
         scales), taking the place of hidden_scaling_grad's share as well; needs hidden_codes.
     hidden_code_cells: the codes' cells per axis of the contracted box frame (``AnchorCodes``
-        cells; saved in the key); None: CODE_CELLS.
+        cells; saved in the key); None: BOX_FRAME_DEFAULTS.
     hidden_encoding, hidden_depth: F_o†'s octaves of sines and cosines of the anchor's box position
         (box frame only; 0: the position alone) and its number of hidden layers (``PrivateHeads``
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
@@ -336,8 +345,8 @@ class SecureConfig:
 
     payload: str = "object+bits:48"
     hidden_weight: float | None = None
-    hidden_feature_grad: float = 0.1
-    hidden_scaling_grad: float = 1.0
+    hidden_feature_grad: float | None = None
+    hidden_scaling_grad: float | None = None
     feature_grad_until: float = 1.0
     robust: str | None = "auto"
     bit_margin: float | None = None
@@ -425,6 +434,15 @@ class SecureConfig:
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {}
         return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None}}
 
+    def gradient_shares(self, kind: str | None, mode: str) -> tuple[float, float]:
+        """(feature, scaling): the shares of the hidden loss's gradient that reach the public anchor
+        features and scalings for a secret hiding ``kind`` in a run of density ``mode``: those given,
+        else 0 where the secret's decoder has private codes (they take the shares' place, so the
+        hidden loss moves nothing in the release) and GRADIENT_SHARES otherwise."""
+        defaults = (0.0, 0.0) if self.private_options(kind, mode).get("codes") else GRADIENT_SHARES
+        given = (self.hidden_feature_grad, self.hidden_scaling_grad)
+        return tuple(default if share is None else share for share, default in zip(given, defaults))
+
     def __post_init__(self):
         if self.hidden_frame not in (None, "anchor", "box"):
             raise ValueError(f"hidden_frame must be 'anchor' or 'box', got {self.hidden_frame!r}")
@@ -441,9 +459,9 @@ class SecureConfig:
             raise ValueError(f"hidden_codes must be 0 (none) or a number of rows >= 1, got {self.hidden_codes}")
         if self.hidden_code_cells is not None and self.hidden_code_cells < 1:
             raise ValueError(f"hidden_code_cells must be >= 1, got {self.hidden_code_cells}")
-        if self.hidden_code_cells is not None and not self.hidden_codes:
+        if self.hidden_code_cells is not None and self.hidden_codes == 0:
             raise ValueError("hidden_code_cells sizes the codes' cells: it needs hidden_codes >= 1")
-        if self.hidden_code_scales and not self.hidden_codes:
+        if self.hidden_code_scales and self.hidden_codes == 0:
             raise ValueError("hidden_code_scales adds the codes to the anchors' scalings: it needs hidden_codes >= 1")
         if self.hidden_latent is not None and (self.hidden_latent < 0 or self.hidden_latent == 1):
             raise ValueError(f"hidden_latent must be 0 (none) or a grid resolution >= 2, got {self.hidden_latent}")
@@ -456,8 +474,9 @@ class SecureConfig:
         for name, meaning in (("hidden_feature_grad", "a share of a gradient"),
                               ("hidden_scaling_grad", "a share of a gradient"),
                               ("feature_grad_until", "a fraction of the run")):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must lie in [0, 1] ({meaning}), got {getattr(self, name)}")
+            value = getattr(self, name)
+            if value is not None and not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must lie in [0, 1] ({meaning}), got {value}")
         # Frozen: the one spelling of each recipe is set here, so that a recorded run and its
         # resume compare equal however either wrote the numbers.
         for name in ("robust", "finish_robust"):

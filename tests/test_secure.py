@@ -224,8 +224,8 @@ def test_robust_dropout_keeps_the_box_frames_rows_and_renders_as_leaving_them_ou
         if how == "left out":
             out = render_view(anchors, private.decoder, cam, trainer.payloads[0].background, trainer.config.raster,
                               camera_index=1, offset_source=private.hidden_offsets,
-                              feature_grad=trainer.current_feature_grad(), scaling_grad=trainer.secure.hidden_scaling_grad,
-                              anchor_mask=serving & anchors.keep)
+                              anchor_source=private.anchor_source, feature_grad=trainer.current_feature_grad(),
+                              scaling_grad=trainer.gradient_shares()[1], anchor_mask=serving & anchors.keep)
         else:
             out = trainer.render_hidden(cam, 1, anchors=anchors, compact=how == "compacted")
         ((out["image"] * weights).sum() + trainer.regularizer(out)).backward()
@@ -486,6 +486,29 @@ def test_hidden_branch_switches(hidden_scene):
         torch.testing.assert_close(feat_f, f * feat, rtol=1e-4, atol=1e-9)
         torch.testing.assert_close(scaling_f, s * scaling, rtol=1e-4, atol=1e-9)
         torch.testing.assert_close(private_f, private, rtol=1e-4, atol=1e-9)
+
+
+def test_by_default_the_codes_carry_the_hidden_object_and_its_loss_moves_nothing_in_the_release(hidden_scene):
+    """An object in the cover mode decodes through the key's private codes (BOX_FRAME_DEFAULTS) and,
+    unless the shares are given, no ℓ_hid gradient reaches the public features or scalings, while
+    the codes and the private heads get theirs; without codes (``hidden_codes=0``, or the anchor
+    frame) the shares are GRADIENT_SHARES."""
+    from securegs_warp.config import BOX_FRAME_DEFAULTS, GRADIENT_SHARES
+
+    secure = SecureConfig()
+    assert secure.gradient_shares("object", "cover") == (0.0, 0.0)
+    assert secure.gradient_shares("image", "rdo") == GRADIENT_SHARES  # the anchor frame: no codes
+    assert SecureConfig(hidden_codes=0).gradient_shares("object", "cover") == GRADIENT_SHARES
+    assert SecureConfig(hidden_scaling_grad=0.5).gradient_shares("object", "cover") == (0.0, 0.5)
+    trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(payload="object"))
+    codes = trainer.model.private.codes
+    assert (codes.rows, codes.cells) == (BOX_FRAME_DEFAULTS["codes"], BOX_FRAME_DEFAULTS["code_cells"])
+    out = trainer.render_hidden(hidden_scene.train[0], camera_index=0)
+    trainer.image_loss(out, trainer.payload.views[0]).backward()
+    anchors = trainer.model.anchors
+    for public in (anchors.feat, anchors.scaling):
+        assert public.grad is None or not public.grad.any()
+    assert codes.table.grad.abs().sum() > 0 and trainer.model.private.offset_mlp[0].weight.grad.abs().sum() > 0
 
 
 def test_feature_grad_until_frees_the_public_features(hidden_scene):

@@ -226,9 +226,9 @@ def test_scale_codes_add_to_the_hidden_gaussians_log_scales_alone():
     with pytest.raises(ValueError, match="needs codes"):
         PrivateHeads(ScaffoldHeads(2, 2), frame="box", code_scales=True)
     with pytest.raises(ValueError, match="hidden_codes"):
-        SecureConfig(hidden_code_scales=True)
+        SecureConfig(hidden_codes=0, hidden_code_scales=True)
     with pytest.raises(ValueError, match="hidden_codes"):
-        SecureConfig(hidden_code_cells=64)
+        SecureConfig(hidden_codes=0, hidden_code_cells=64)
 
 
 def test_the_exported_hidden_gaussians_are_those_the_latent_grid_renders(scene):

@@ -19,13 +19,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import FINISH_ROBUST_RECIPE, ROBUST_RECIPE, RunConfig, SecureConfig, recorded_phase, to_dict
+from ..config import (BOX_FRAME_DEFAULTS, FINISH_ROBUST_RECIPE, GRADIENT_SHARES, ROBUST_RECIPE, RunConfig, SecureConfig,
+                      recorded_phase, to_dict)
 from ..data import Camera
 from ..io import export_3dgs_ply
 from ..runs import RunFolder, png_name, save_png
 from ..keys import is_sealed
 from ..secure.container import PUBLIC_DIR, KeyFile, KeyViews, default_key_path, open_container, save_container
-from ..secure.heads import CODE_CELLS
 from ..secure.payload import SECRET_SEPARATOR, parse_secrets, recorded_payload
 from ..secure.robust import ROBUST_SYNTAX
 from ..secure.trainer import secret_suffix
@@ -67,11 +67,11 @@ SECURE_FLAGS = (
     ("--hidden-latent", "secure.hidden_latent", "box frame: resolution of the key's private latent grid over the "
                                                 "object's neighbourhood (default 0: none)"),
     ("--hidden-codes", "secure.hidden_codes", "box frame: rows of the key's private per-anchor codes, added to "
-                                              "the serving anchors' features (default 0: none)"),
+                                              f"the serving anchors' features (default {BOX_FRAME_DEFAULTS['codes']}; 0: none)"),
     ("--hidden-code-scales", "secure.hidden_code_scales", "box frame: the codes add to the serving anchors' "
-                                                          "scalings too (needs --hidden-codes)"),
+                                                          "scalings too (needs the codes: not with --hidden-codes 0)"),
     ("--hidden-code-cells", "secure.hidden_code_cells", "box frame: the codes' cells per axis of the object's "
-                                                        f"contracted neighbourhood, kept in the key (default: {CODE_CELLS})"),
+                                                        f"contracted neighbourhood, kept in the key (default: {BOX_FRAME_DEFAULTS['code_cells']})"),
     ("--hidden-depth", "secure.hidden_depth", "hidden layers of the private offset MLP F_o† (default 1)"),
     ("--hidden-eps2d", "secure.hidden_eps2d", "the hidden render's screen-space dilation, kept in the key (default: "
                                               "the public render's, 0.3)"),
@@ -91,9 +91,10 @@ SECURE_FLAGS = (
                                                 "Scaffold-GS"),
     ("--hidden-feature-grad", "secure.hidden_feature_grad",
      "share of the hidden loss's gradient reaching the public anchor features, 0 to 1 (lower: the cover stays "
-     "closer to plain Scaffold-GS; the paper's 1)"),
+     f"closer to plain Scaffold-GS; the paper's 1; default 0 with private codes, {GRADIENT_SHARES[0]} otherwise)"),
     ("--hidden-scaling-grad", "secure.hidden_scaling_grad",
-     "share of the hidden loss's gradient reaching the public anchor scalings, 0 to 1 (the paper's 1)"),
+     "share of the hidden loss's gradient reaching the public anchor scalings, 0 to 1 (the paper's 1; default 0 "
+     f"with private codes, {GRADIENT_SHARES[1]} otherwise)"),
     ("--bit-margin", "secure.bit_margin", "logit margin by which every anchor's vote must agree with its bit (the "
                                           "bits live in the public anchor features: higher costs the cover; None: "
                                           "0.25 with the automatic robust training, 1 otherwise)"),

@@ -173,12 +173,13 @@ class HiddenGraph:
         return [p for secret in self.rows for p in t.model.secrets[secret].parameters()]
 
     def _made_for(self, step: int) -> tuple:
-        """(each rendered secret's serving count, the features' gradient share the decoding applies
-        at ``step``): buffers and graphs are made again when it changes (a refit to another count;
+        """(each rendered secret's serving count, each one's features' gradient share at ``step``):
+        buffers and graphs are made again when it changes (a refit to another count;
         feature_grad_until)."""
         t = self.trainer
         counts = tuple(len(t.model.secrets[s].serving_index(t.model.anchors.xyz)) for s in _rendered(t))
-        return counts, t.current_feature_grad(step) if self.phase == JOINT else 0.0
+        shares = tuple(t.current_feature_grad(step, s) if self.phase == JOINT else 0.0 for s in _rendered(t))
+        return counts, shares
 
     def run(self, step: int, index: int) -> tuple[torch.Tensor, dict, tuple]:
         t = self.trainer

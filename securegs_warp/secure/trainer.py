@@ -261,16 +261,21 @@ class SecureTrainer(ScaffoldTrainer):
         ``RasterOptions.capture`` (for renders of one row count and image size, step after step)."""
         options = dataclasses.replace(self.config.raster, capture=True) if replay_raster else self.config.raster
         return self.model.render_hidden(cam, options, background=self.payloads[secret].background,
-                                        camera_index=camera_index, feature_grad=self.current_feature_grad(step),
-                                        scaling_grad=self.secure.hidden_scaling_grad, anchors=anchors, secret=secret,
+                                        camera_index=camera_index, feature_grad=self.current_feature_grad(step, secret),
+                                        scaling_grad=self.gradient_shares(secret)[1], anchors=anchors, secret=secret,
                                         visible=visible, capture=self.secure.hidden_capture, compact=compact)
 
-    def current_feature_grad(self, step: int | None = None) -> float:
-        """hidden_feature_grad until feature_grad_until of the run, 0 after it."""
+    def gradient_shares(self, secret: int = 0) -> tuple[float, float]:
+        """Secret ``secret``'s (feature, scaling) shares of its hidden loss's gradient on the release
+        (``SecureConfig.gradient_shares``)."""
+        return self.secure.gradient_shares(self.payloads[secret].spec.kind, self.strategy.mode)
+
+    def current_feature_grad(self, step: int | None = None, secret: int = 0) -> float:
+        """Secret ``secret``'s feature share until feature_grad_until of the run, 0 after it."""
         step = self.step_count if step is None else step
         if step > self.secure.feature_grad_until * self.config.iterations:
             return 0.0
-        return self.secure.hidden_feature_grad
+        return self.gradient_shares(secret)[0]
 
     def extra_losses(self, index: int, renders: list, branches: dict, step: int) -> dict:
         stride = self.secure.hidden_stride
