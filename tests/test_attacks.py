@@ -323,6 +323,46 @@ def test_only_an_object_or_scene_key_is_scored_against_the_scenes_hidden_views(p
     assert KeyViews.from_metadata(meta, "cpu").scene_targets is expected
 
 
+def test_the_key_records_its_serving_anchors_and_takes_back_those_an_attacker_shifted(container):
+    """A box-frame key holds its serving anchors' positions as released and each one's reach (half
+    the distance to its nearest other anchor). An anchor shifted within its entry's reach decodes
+    from the recorded position, so the hidden render is the unattacked one; one shifted beyond it
+    stays where it is; a key written without a record decodes the shifted positions."""
+    from securegs_warp.secure.heads import PrivateHeads
+
+    model, meta = open_container(container / "public", container / "key.safetensors")
+    private, xyz = model.private, model.anchors.xyz.detach().clone()
+    serving = private.serving_mask(xyz)
+    record = private.anchor_record
+    assert meta["heads"]["recorded"] == int(serving.sum()) == len(record) > 10
+    assert torch.equal(record[:, :3], xyz[serving])
+    others = torch.cdist(record[:, :3].double(), xyz.double())
+    others[others == 0] = float("inf")
+    assert torch.allclose(2 * record[:, 3].double(), others.min(dim=1).values, rtol=1e-5)
+    assert model._key_anchors(private) is model.anchors  # unattacked: nothing to take back
+    cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+    with torch.no_grad():
+        unattacked = model.render_hidden(cam, CPU_RASTER)["image"]
+        direction = torch.nn.functional.normalize(torch.randn(len(record), 3, generator=torch.Generator().manual_seed(0)))
+        shifted = xyz.clone()
+        shifted[serving] += 0.4 * record[:, 3:] * direction
+        far = int(serving.nonzero()[0])
+        shifted[far] = xyz[far] + 3.0 * record[0, 3] * direction[0]
+        model.anchors.xyz.copy_(shifted)
+        taken_back = private.registered(model.anchors.xyz)
+        assert torch.equal(taken_back[serving][1:], xyz[serving][1:]) and torch.equal(taken_back[far], shifted[far])
+        shifted[far] = xyz[far] + 0.4 * record[0, 3] * direction[0]
+        model.anchors.xyz.copy_(shifted)
+        assert torch.equal(model.render_hidden(cam, CPU_RASTER)["image"], unattacked)
+        older = PrivateHeads(model.heads, **{k: v for k, v in meta["heads"].items() if k != "recorded"})
+        older.load_state_dict({k: v for k, v in private.state_dict().items() if k != "anchor_record"})
+        assert older.registered(model.anchors.xyz) is model.anchors.xyz
+        bare = type(model)(model.anchors, model.heads, [older])
+        assert not torch.equal(bare.render_hidden(cam, CPU_RASTER)["image"], unattacked)
+    with pytest.raises(ValueError, match="frame='box'"):
+        PrivateHeads(ScaffoldHeads(2, 2), recorded=4)
+
+
 def test_attack_cli_refuses_bad_specs(container, capsys):
     code = main(["attack", str(container / "public"), "--key", str(container / "key.safetensors"),
                  "--attack", "prune:0.2"])

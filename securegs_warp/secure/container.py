@@ -80,8 +80,9 @@ def save_container(out: str | Path, model: SecureModel, keys: list[KeyFile]) -> 
     for private, key, path in zip(model.secrets, keys, paths):
         if key.path is None:
             remove_stale_key(out, key.passphrase)
-        tensors = {_PREFIX + name: value.detach() for name, value in private.state_dict().items()}
-        save_key(path, tensors, {**key.metadata, "heads": private.describe()}, fingerprint, key.passphrase)
+        tensors, described = private.key_state(model.anchors.xyz)
+        save_key(path, {_PREFIX + name: value for name, value in tensors.items()},
+                 {**key.metadata, "heads": described}, fingerprint, key.passphrase)
     return public, paths
 
 

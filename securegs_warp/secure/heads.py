@@ -28,6 +28,17 @@ INSIDE_TIE_BREAK = 1e-3
 CODE_CELLS = 256
 
 
+def _nearest_other(points: torch.Tensor, cloud: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
+    """[S]: each of points [S, 3] (rows of cloud [N, 3]) to its nearest other entry of cloud, exact
+    differences (no matrix-product shortcut, which is coarser than the anchors' spacing far from
+    the origin); inf where the cloud has no other entry. Cloud rows are read in chunks."""
+    best = torch.full((len(points), 2), float("inf"), device=points.device)
+    for start in range(0, len(cloud), chunk):
+        d = torch.cdist(points, cloud[start:start + chunk], compute_mode="donot_use_mm_for_euclid_dist")
+        best = torch.cat([best, d], dim=1).topk(2, dim=1, largest=False).values
+    return best[:, 1]  # the nearest is the point itself
+
+
 def contract(where: torch.Tensor) -> torch.Tensor:
     """[N, 3]: box-frame positions [N, 3] contracted per axis, u = p / (1 + |p|), into (-1, 1): the
     box's inside spans the middle half, and the serving anchors outside it keep distinct places
@@ -145,6 +156,11 @@ class PrivateHeads(nn.Module):
         (``fix_serving``); decoding reads the radius, not the count, so a release that lost anchors
         decodes with the survivors and no anchor the key never trained is drawn in to make up the
         number (it would paint its own Gaussians into the box).
+    recorded: in the box frame, the rows of ``anchor_record`` (0: a key without it, as written before
+        it existed): the serving anchors' positions as the release was written
+        (``key_state``) and each one's reach. Decoding moves a served anchor that an attacker shifted
+        (quantised or noisy positions) back onto its record (``registered``), so that F_o†, the
+        codes and the view directions read the position they were trained with.
     eps2d: the hidden render's screen-space dilation (``RasterOptions.eps2d``, added to each 2D
         covariance), None: the render options' own. The public render must keep Scaffold-GS's for
         the release to look the same in its viewer; the hidden render is the key holder's alone.
@@ -155,7 +171,8 @@ class PrivateHeads(nn.Module):
                  offsets: bool = True, scale_offsets: bool = True, hidden: bool = True, frame: str = "anchor",
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0,
                  encoding: int = 0, depth: int = 1, latent: int = 0, codes: int = 0, code_scales: bool = False,
-                 code_cells: int = CODE_CELLS, eps2d: float | None = None):
+                 code_cells: int = CODE_CELLS, recorded: int = 0,
+                 eps2d: float | None = None):
         super().__init__()
         if eps2d is not None and not 0.0 <= eps2d < math.inf:
             raise ValueError(f"eps2d must be >= 0 and finite, got {eps2d}")
@@ -192,6 +209,12 @@ class PrivateHeads(nn.Module):
         if frame == "box":  # set by the trainer from the hidden object's bounds; saved in the key
             self.register_buffer("box", torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
             self.register_buffer("serving_radius", torch.tensor(float("inf")))
+        if recorded:
+            if not self.serves_by_radius:
+                raise ValueError("an anchor record holds a box frame's serving anchors: it needs frame='box' "
+                                 "and serving >= 1")
+            self.register_buffer("anchor_record", torch.zeros(int(recorded), 4))
+        self._registered = Kept()  # the last registered positions, while positions and record are unchanged
         self.bits = None
         self.set_message(message, bit_seed, bit_cell)
         self._serving = Kept()  # the last serving_mask, while positions, radius and box are unchanged
@@ -297,6 +320,49 @@ class PrivateHeads(nn.Module):
         return self._serving.get((xyz, self.serving_radius, self.box),
                                  lambda: self.box_distance(xyz) <= self.serving_radius)
 
+    def key_state(self, xyz: torch.Tensor) -> tuple[dict, dict]:
+        """(tensors, description): what a key of these heads holds for a release whose anchors lie
+        at xyz [N, 3]: the state dict and ``describe()``, with, in the box frame, ``anchor_record``
+        [S, 4]: the positions of the S anchors that serve there and each one's reach, half its
+        distance to the nearest other anchor of the release."""
+        tensors = {name: value.detach() for name, value in self.state_dict().items()}
+        described = self.describe()
+        if self.serves_by_radius:
+            served = xyz[self.serving_mask(xyz)].detach()
+            tensors["anchor_record"] = torch.cat([served, 0.5 * _nearest_other(served, xyz.detach())[:, None]], dim=1)
+            described["recorded"] = len(served)
+        return tensors, described
+
+    @torch.no_grad()
+    def registered(self, xyz: torch.Tensor) -> torch.Tensor:
+        """[N, 3]: anchor positions xyz [N, 3] with each entry of ``anchor_record`` taking back the
+        nearest anchor within its reach (half the distance to its nearest neighbour in the release
+        as written: an attacker's small shift, a quantisation), the others as they are; xyz itself
+        where the key holds no record or nothing moves. Only anchors within the serving radius plus
+        the largest reach are looked at."""
+        record = getattr(self, "anchor_record", None)
+        if record is None or not len(record):
+            return xyz
+        return self._registered.get((xyz, record, self.box), lambda: self._register(xyz, record))
+
+    def _register(self, xyz: torch.Tensor, record: torch.Tensor) -> torch.Tensor:
+        where, reach = record[:, :3], record[:, 3]
+        near = (self.box_distance(xyz) <= self.serving_radius + reach.max()).nonzero()[:, 0]
+        distance, entry = torch.cdist(xyz[near], where, compute_mode="donot_use_mm_for_euclid_dist").min(dim=1)
+        taken = distance < reach[entry]
+        # One anchor an entry, the nearest.
+        order = distance[taken].argsort()
+        near, entry = near[taken][order], entry[taken][order]
+        first = torch.full((len(where),), len(entry), device=xyz.device).scatter_reduce(
+            0, entry, torch.arange(len(entry), device=xyz.device), "amin")
+        first = first[first < len(entry)]
+        near, entry = near[first], entry[first]
+        if not len(near) or torch.equal(xyz[near], where[entry]):
+            return xyz
+        moved = xyz.clone()
+        moved[near] = where[entry]
+        return moved
+
     @torch.no_grad()
     def nearest_serving(self, xyz: torch.Tensor, count: int) -> torch.Tensor:
         """[count] long, ascending: the indices of the ``count`` anchor positions of xyz [N, 3]
@@ -343,4 +409,5 @@ class PrivateHeads(nn.Module):
                 "latent": 0 if self.latent_grid is None else self.latent_grid.resolution,
                 "codes": 0 if self.codes is None else self.codes.rows,
                 "code_scales": self.codes is not None and self.codes.scales,
-                "code_cells": CODE_CELLS if self.codes is None else self.codes.cells, "eps2d": self.eps2d}
+                "code_cells": CODE_CELLS if self.codes is None else self.codes.cells,
+                "recorded": len(getattr(self, "anchor_record", ())), "eps2d": self.eps2d}

@@ -14,6 +14,7 @@ from ..render import camera_tensors, render_view
 from ..scaffold_model import ScaffoldModel, decode_all
 from . import captured
 from .heads import PrivateHeads
+from .robust import PerturbedAnchors
 
 
 class SecureModel(ScaffoldModel):
@@ -53,7 +54,8 @@ class SecureModel(ScaffoldModel):
         feature_grad, scaling_grad: the share of this render's gradient that reaches the public
         anchor features and scalings (training only; see ``generate_neural_gaussians``).
         anchors: what to decode instead of this model's anchors: robust training's
-        ``PerturbedAnchors`` (same rows; its ``keep`` mask drops anchors from the render).
+        ``PerturbedAnchors`` (same rows; its ``keep`` mask drops anchors from the render). None:
+        the model's, with any the key's record moves back (``_key_anchors``).
         visible: [N] bool, the anchors of ``anchors`` visible from ``camera`` (``visible_anchor_mask``)
         when the caller has them already (the public render of the same view): not computed again.
         capture: decode from CUDA graphs (``CapturedRows``) where that gives the same render: a
@@ -67,12 +69,12 @@ class SecureModel(ScaffoldModel):
             raise ValueError("this payload hides no image: there is no hidden view to render")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
         rows = None
+        anchors = self._key_anchors(private) if anchors is None else anchors
         if capture and self.fixed_rows(secret) and captured.replayable(self.anchors.xyz) \
-                and torch.is_grad_enabled():
+                and torch.is_grad_enabled() and not getattr(anchors, "registered", False):
             if secret not in self._captured or self._captured[secret].private is not private:
                 self._captured[secret] = captured.CapturedRows(private)
             rows = self._captured[secret]
-        anchors = self.anchors if anchors is None else anchors
         mask, index, keep = self._decoding_rows(private, anchors, camera, visible)
         if private.eps2d is not None:
             options = dataclasses.replace(options or RasterOptions(), eps2d=private.eps2d)
@@ -105,6 +107,8 @@ class SecureModel(ScaffoldModel):
         ``PerturbedAnchors`` of a key's S serving rows only (``serving_rows``) decode every row:
         ([S] True, arange(S), their ``keep``)."""
         keep = getattr(anchors, "keep", None)
+        if getattr(anchors, "registered", False):  # the key's own positions: served by its radius
+            return private.serving_mask(anchors.xyz), private.serving_index(anchors.xyz), keep
         if getattr(anchors, "serving_rows", False):
             n, device = anchors.num_anchors, anchors.xyz.device
             return torch.ones(n, dtype=torch.bool, device=device), torch.arange(n, device=device), keep
@@ -132,8 +136,19 @@ class SecureModel(ScaffoldModel):
         if private.decoder is None:
             raise ValueError("this payload hides no image: there are no hidden Gaussians")
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
-        return decode_all(self.anchors, private.decoder, camera, offset_source=source,
-                          anchor_source=private.anchor_source, anchor_mask=private.serving_mask(self.anchors.xyz))
+        anchors = self._key_anchors(private)
+        return decode_all(anchors, private.decoder, camera, offset_source=source,
+                          anchor_source=private.anchor_source, anchor_mask=private.serving_mask(anchors.xyz))
+
+    def _key_anchors(self, private: PrivateHeads):
+        """What ``private`` decodes of this model's anchors: the anchors themselves, or, where the key's
+        record moves some back (``PrivateHeads.registered``: an attacker shifted them), a
+        ``PerturbedAnchors`` view with those positions, marked ``registered``."""
+        xyz = private.registered(self.anchors.xyz)
+        if xyz is self.anchors.xyz:
+            return self.anchors
+        a = self.anchors
+        return PerturbedAnchors(xyz, a.feat, a.offsets, a.scaling, a.rotation, a.opacity, registered=True)
 
     def _explicit_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""
