@@ -33,7 +33,7 @@ def main():
     rows = []
     for run in args.keys:
         model, meta = open_container(f"{run}/public", f"{run}/key.safetensors", device="cpu")
-        points = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
+        points, _ = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
         for a, b in itertools.permutations(range(len(plains)), 2):
             leak = steganalysis.leakage(plains[a], points, plains[b])
             rows.append({"surface_of": run, "model": args.plain[a], "reference": args.plain[b],

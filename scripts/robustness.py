@@ -11,10 +11,14 @@ against strength, a line per container, its unattacked level dashed) into --out.
     python scripts/robustness.py --out runs/robustness          # trains runs/robustness/container first
     python scripts/robustness.py RUN --attacks prune-random,noise-feat
     python scripts/robustness.py RUN --attacks prune-random --draws 3   # three random prunings per strength
+    python scripts/robustness.py RUN --attacks quantize,noise-xyz --without-record
+        (each container also as RUN-bare: its key without the record of its serving anchors'
+        positions, decoding the positions it is given, as a key written before the record did)
 
 The PNG needs matplotlib (``pip install -e ".[plots]"``).
 """
 import argparse
+import copy
 import time
 from pathlib import Path
 
@@ -26,6 +30,7 @@ from securegs_warp.config import RunConfig, from_dict
 from securegs_warp.robustness import SWEEP, plot_sweep, sweep, write_sweep
 from securegs_warp.runs import RunFolder
 from securegs_warp.secure.container import PLAIN_KEY, KeyViews, open_container
+from securegs_warp.secure.model import SecureModel
 
 
 def main():
@@ -40,6 +45,9 @@ def main():
                          "purify draw renders every view again: the sweep's slowest attack after finetune")
     ap.add_argument("--out", default="runs/robustness")
     ap.add_argument("--device", help="where to render and attack (default: CUDA when present, else the CPU)")
+    ap.add_argument("--without-record", action="store_true",
+                    help="sweep each container a second time as LABEL-bare, its key without the record of its "
+                         "serving anchors' positions (what the record buys against moved anchors)")
     args = ap.parse_args()
     device = resolve_device(args.device)
     quiet_warp()
@@ -66,6 +74,8 @@ def main():
     for label, run in zip(labels, runs):
         models[label], meta = open_container(run / "public", run / PLAIN_KEY, device=device)
         views[label] = KeyViews.from_metadata(meta, device)
+        if args.without_record:
+            models[f"{label}-bare"], views[f"{label}-bare"] = without_record(models[label]), views[label]
     meta = {"runs": [str(r) for r in runs], "labels": labels, "seed": args.seed, "draws": args.draws,
             "date": time.strftime("%Y-%m-%d"), "device": str(device)}
     rows = []
@@ -86,6 +96,16 @@ def main():
         print("no plot: matplotlib is not installed (pip install -e \".[plots]\")")
         return
     print(f"wrote {out / 'robustness.png'}")
+
+
+def without_record(model: SecureModel) -> SecureModel:
+    """``model`` with a copy of its key's heads that holds no anchor record (the release shared)."""
+    bare = copy.deepcopy(model.private)
+    if getattr(bare, "anchor_record", None) is None:
+        raise SystemExit("--without-record: this key holds no anchor record (a box-frame key written since "
+                         "the record exists has one)")
+    delattr(bare, "anchor_record")
+    return SecureModel(model.anchors, model.heads, [bare])
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ from securegs_warp.data import make_synthetic_scene
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure import SecureTrainer
 from securegs_warp.secure.container import open_container
-from securegs_warp.secure.steganalysis import audit, auc_by_model, detection_auc, leakage, sliced_wasserstein
+from securegs_warp.secure.steganalysis import (SURFACE_OPACITY, audit, auc_by_model, detection_auc, leakage,
+                                              sliced_wasserstein, surface_opacity)
 from securegs_warp.train import TrainConfig
 
 TINY = ["--width", "40", "--height", "30", "--train-views", "6", "--test-views", "2"]
@@ -378,9 +379,11 @@ def test_audit_command_prints_one_json_object(tmp_path, capsys):
     assert {"score", "suspicious_box", "anchors", "attribute_distances"} <= set(report)
     assert set(report["attribute_distances"]) == {"features", "offsets", "scales", "opacities"}
     assert max(report["attribute_distances"].values()) < 1e-6  # the release against itself
-    # Four steps leave no hidden Gaussian opaque enough to mark a surface: the leak's keys are there,
-    # null, with the reason; a reference of another k and feature width is not comparable, not an error.
-    assert report["coverage"] is None and report["density_ratio"] is None and "opaque" in report["leakage_note"]
+    # Four steps leave no hidden Gaussian above SURFACE_OPACITY: the most opaque of the faint ones mark
+    # the surface, and the leak is measured (the release against itself: a density ratio of 1). A
+    # reference of another k and feature width is not comparable, not an error.
+    assert 0 < report["surface_opacity"] < SURFACE_OPACITY and "leakage_note" not in report
+    assert report["coverage"] is not None and report["density_ratio"] in (None, pytest.approx(1.0))
     other = tmp_path / "other"
     assert main(["train", "--out", str(other), "--iterations", "2", "--quiet", "--set", "train.heads.n_offsets=5",
                  "--set", "train.heads.feat_dim=16", *TINY]) == 0
@@ -401,6 +404,14 @@ def test_leakage_counts_anchors_on_the_hidden_surface():
     assert leak["coverage"] > 0.5 > leak["reference_coverage"] and leak["density_ratio"] > 10
     assert leakage(reference, sphere, reference)["density_ratio"] == pytest.approx(1.0)
     assert leakage(walls, sphere, walls)["density_ratio"] is None  # no reference anchor near it
+
+
+def test_the_hidden_surface_is_marked_by_the_opaque_gaussians_or_the_most_opaque_of_faint_ones():
+    """A Gaussian above SURFACE_OPACITY marks the surface; where none is that opaque (a thin or dark
+    object drawn by many faint Gaussians) those above half the most opaque one's opacity do."""
+    assert surface_opacity(np.array([0.1, 0.9, 0.3])) == SURFACE_OPACITY
+    assert surface_opacity(np.array([0.1, 0.3, 0.2])) == pytest.approx(0.15)
+    assert np.isnan(surface_opacity(np.zeros(0)))
 
 
 @pytest.mark.parametrize("placement", ["stand", "sink", "float"])

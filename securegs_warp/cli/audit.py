@@ -49,11 +49,11 @@ def _leakage(model, meta: dict, release: dict, ref: dict | None) -> dict:
     ``leakage_note`` saying why it cannot be measured."""
     if not model.renders_hidden:
         return {"leakage_note": "the key hides no object or scene (bits only): no hidden surface to measure"}
-    points = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
+    points, threshold = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
     if not len(points):
-        return {"leakage_note": f"no hidden Gaussian is opaque enough (above {steganalysis.SURFACE_OPACITY}) to "
-                                "mark the hidden surface"}
+        return {"leakage_note": "the key decodes no hidden Gaussian to mark the hidden surface"}
     found = steganalysis.leakage(release["xyz"], points, None if ref is None else ref["xyz"])
+    found["surface_opacity"] = threshold
     if ref is None:
         found["leakage_note"] = "density_ratio compares with a plain model of the scene: give --reference"
     return found

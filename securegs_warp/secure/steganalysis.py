@@ -188,23 +188,38 @@ def detection_auc(container_scores, plain_scores) -> float:
     return float(((c[:, None] > p[None, :]).sum() + 0.5 * (c[:, None] == p[None, :]).sum()) / (len(c) * len(p)))
 
 
-# The opacity above which a decoded hidden Gaussian marks the hidden surface.
+# The opacity above which a decoded hidden Gaussian marks the hidden surface, unless none reaches it.
 SURFACE_OPACITY = 0.5
 
 
+def surface_opacity(opacities: np.ndarray, min_opacity: float = SURFACE_OPACITY) -> float:
+    """The opacity above which hidden Gaussians of opacities [M] mark the hidden surface:
+    ``min_opacity``, or half the most opaque one's where none reaches it (a thin or dark object
+    drawn by many faint Gaussians, which would otherwise leave its leak unmeasured); nan for none."""
+    if not len(opacities):
+        return float("nan")
+    top = float(opacities.max())
+    return min_opacity if top > min_opacity else 0.5 * top
+
+
 def hidden_surface(model, cameras, samples: int = 4096, min_opacity: float = SURFACE_OPACITY,
-                   seed: int = 0) -> np.ndarray:
-    """Points [≤ samples, 3] on the hidden object, from a ``SecureModel`` opened with its key: the
-    means of the hidden Gaussians of opacity above ``min_opacity`` decoded with each camera's view
-    directions (``SecureModel.hidden_gaussians``), pooled and subsampled."""
-    means = []
+                   seed: int = 0) -> tuple[np.ndarray, float]:
+    """(points [≤ samples, 3] on the hidden object, the opacity that marked them), from a
+    ``SecureModel`` opened with its key: the means of the hidden Gaussians more opaque than
+    ``surface_opacity`` decoded with each camera's view directions (``SecureModel.hidden_gaussians``),
+    pooled and subsampled."""
+    means, opacities = [], []
     for cam in cameras:
         g = model.hidden_gaussians(cam)
-        means.append(g["means"][g["opacities"] > min_opacity].cpu().numpy())
-    pts = np.concatenate(means) if means else np.zeros((0, 3))
+        means.append(g["means"].cpu().numpy())
+        opacities.append(g["opacities"].reshape(-1).cpu().numpy())
+    means = np.concatenate(means) if means else np.zeros((0, 3))
+    opacities = np.concatenate(opacities) if opacities else np.zeros(0)
+    threshold = surface_opacity(opacities, min_opacity)
+    pts = means[opacities > threshold]
     if len(pts) > samples:
         pts = pts[np.random.default_rng(seed).choice(len(pts), samples, replace=False)]
-    return pts
+    return pts, threshold
 
 
 def leakage(xyz: np.ndarray, hidden_points: np.ndarray, reference_xyz: np.ndarray | None,
