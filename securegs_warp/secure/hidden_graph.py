@@ -29,9 +29,7 @@ as torch asks of a capture's warm-up.
 
 Differences from a step op by op:
 - The attacks are drawn from the device's default generator (seeded by the run's seed), which a
-  checkpoint does not hold: a resumed run draws other attacks than an uninterrupted one would. Nor
-  do they advance the trainer's generator, so the order of the training views differs from a run
-  whose hidden branch runs op by op.
+  checkpoint does not hold: a resumed run draws other attacks than an uninterrupted one would.
 - A non-finite rasterizer input does not raise (the eager rasterize checks its inputs before it
   sorts; a replay cannot) but gives non-finite gradients, and the step is skipped and logged as such.
 - The graphs, with the memory of a step's intermediate tensors, live until they are dropped
@@ -228,7 +226,7 @@ class HiddenGraph:
         """The hidden renders of the buffers' rows and view, their loss and its backward (op by op,
         or recorded into a capture): (loss, extra, renders, status)."""
         t = self.trainer
-        anchors = {secret: perturb(rows.view, self.attacks, t.generator, None, self.draws) if self.attacks
+        anchors = {secret: perturb(rows.view, self.attacks, t.hidden_generator, None, self.draws) if self.attacks
                    else rows.view for secret, rows in self.rows.items()}
         renders = []
         scale = t.secure.hidden_stride if self.phase == JOINT else 1.0

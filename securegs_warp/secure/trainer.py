@@ -53,6 +53,13 @@ FINISH_LR_FROM = 0.5
 FINISH_AVERAGE_FROM = 0.5
 
 
+def hidden_seed(seed: int) -> int:
+    """The seed of robust training's draws for a run of training seed ``seed``: another stream
+    than the public training's (the golden ratio's odd 64-bit multiple, XOR-ed in), still fixed
+    by the one seed config.json records."""
+    return (seed ^ 0x9E3779B97F4A7C15) & (2**63 - 1)
+
+
 def secret_suffix(secret: int) -> str:
     """What a metric of secret ``secret`` (0-based) is suffixed with: nothing for the first, _2, _3 ..."""
     return "" if secret == 0 else f"_{secret + 1}"
@@ -111,6 +118,11 @@ class SecureTrainer(ScaffoldTrainer):
         # The running mean of the private heads' weights late in the phase (_average_private):
         # {"count": steps folded in, "weights": [tensor per parameter of the finishing optimizer]}.
         self._finish_average = None
+        # Robust training's draws come from a stream of their own, so that they leave the public
+        # training's (the views' order, the density strategy's draws) as in plain Scaffold-GS of the
+        # same seed: with no hidden gradient on the release (the codes) the release is then the plain
+        # model's, whatever it hides.
+        self.hidden_generator = torch.Generator().manual_seed(hidden_seed(config.seed))
         super().__init__(scene, config, device=device, strategy=strategy)
 
     @property
@@ -307,7 +319,7 @@ class SecureTrainer(ScaffoldTrainer):
             return None
         opacity = public_opacity(public(), self.model.anchors) \
             if any(a.name == "prune-opacity" for a in attacks) else None
-        return perturb(self.model.anchors, attacks, self.generator, opacity)
+        return perturb(self.model.anchors, attacks, self.hidden_generator, opacity)
 
     def _hidden_losses(self, index: int, renders: list, step: int, anchors, visible, scale: float,
                        views: dict | None = None):
@@ -458,7 +470,8 @@ class SecureTrainer(ScaffoldTrainer):
 
     def checkpoint_state(self) -> dict:
         # The messages and seeds were drawn at random when the run began: resuming keeps them.
-        return {**super().checkpoint_state(), "private": [private.state_dict() for private in self.model.secrets],
+        return {**super().checkpoint_state(), "hidden_generator": self.hidden_generator.get_state(),
+                "private": [private.state_dict() for private in self.model.secrets],
                 "messages": [None if p.bits is None else p.bits.detach().cpu() for p in self.payloads],
                 "bit_seeds": list(self.bit_seeds),
                 "finish_optimizer": None if self._finish_optimizer is None else self._finish_optimizer.state_dict(),
@@ -486,6 +499,8 @@ class SecureTrainer(ScaffoldTrainer):
 
     def restore(self, state: dict, path) -> None:
         super().restore(state, path)
+        if "hidden_generator" in state:  # else written when the draws shared the public generator
+            self.hidden_generator.set_state(state["hidden_generator"].cpu())
         self.bit_seeds = list(state["bit_seeds"])
         for private, p, saved, message, seed in zip(self.model.secrets, self.payloads, state["private"],
                                                     state["messages"], self.bit_seeds):
