@@ -324,10 +324,10 @@ def test_only_an_object_or_scene_key_is_scored_against_the_scenes_hidden_views(p
 
 
 def test_the_key_records_its_serving_anchors_and_takes_back_those_an_attacker_shifted(container):
-    """A box-frame key holds its serving anchors' positions as released and each one's reach (half
-    the distance to its nearest other anchor). An anchor shifted within its entry's reach decodes
-    from the recorded position, so the hidden render is the unattacked one; one shifted beyond it
-    stays where it is; a key written without a record decodes the shifted positions."""
+    """A box-frame key holds its serving anchors' positions as released and each one's reach (the
+    distance to its nearest other anchor). Anchors shifted by less than half their reach decode from
+    the recorded positions, so the hidden render is the unattacked one; one shifted beyond every
+    entry's reach stays where it is; a key written without a record decodes the shifted positions."""
     from securegs_warp.secure.heads import PrivateHeads
 
     model, meta = open_container(container / "public", container / "key.safetensors")
@@ -338,20 +338,22 @@ def test_the_key_records_its_serving_anchors_and_takes_back_those_an_attacker_sh
     assert torch.equal(record[:, :3], xyz[serving])
     others = torch.cdist(record[:, :3].double(), xyz.double())
     others[others == 0] = float("inf")
-    assert torch.allclose(2 * record[:, 3].double(), others.min(dim=1).values, rtol=1e-5)
+    assert torch.allclose(record[:, 3].double(), others.min(dim=1).values, rtol=1e-5)
     assert model._key_anchors(private) is model.anchors  # unattacked: nothing to take back
     cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
     with torch.no_grad():
         unattacked = model.render_hidden(cam, CPU_RASTER)["image"]
         direction = torch.nn.functional.normalize(torch.randn(len(record), 3, generator=torch.Generator().manual_seed(0)))
         shifted = xyz.clone()
-        shifted[serving] += 0.4 * record[:, 3:] * direction
+        shifted[serving] += 0.45 * record[:, 3:] * direction
         far = int(serving.nonzero()[0])
-        shifted[far] = xyz[far] + 3.0 * record[0, 3] * direction[0]
+        outward = torch.nn.functional.normalize(xyz[far] - record[:, :3].mean(dim=0), dim=0)
+        shifted[far] = xyz[far] + 2.0 * record[:, 3].max() * outward
         model.anchors.xyz.copy_(shifted)
         taken_back = private.registered(model.anchors.xyz)
+        assert torch.cdist(shifted[far][None], record[:, :3]).squeeze(0).ge(record[:, 3]).all()  # beyond every reach
         assert torch.equal(taken_back[serving][1:], xyz[serving][1:]) and torch.equal(taken_back[far], shifted[far])
-        shifted[far] = xyz[far] + 0.4 * record[0, 3] * direction[0]
+        shifted[far] = xyz[far] + 0.45 * record[0, 3] * direction[0]
         model.anchors.xyz.copy_(shifted)
         assert torch.equal(model.render_hidden(cam, CPU_RASTER)["image"], unattacked)
         older = PrivateHeads(model.heads, **{k: v for k, v in meta["heads"].items() if k != "recorded"})

@@ -158,9 +158,9 @@ class PrivateHeads(nn.Module):
         number (it would paint its own Gaussians into the box).
     recorded: in the box frame, the rows of ``anchor_record`` (0: a key without it, as written before
         it existed): the serving anchors' positions as the release was written
-        (``key_state``) and each one's reach. Decoding moves a served anchor that an attacker shifted
-        (quantised or noisy positions) back onto its record (``registered``), so that F_o†, the
-        codes and the view directions read the position they were trained with.
+        (``key_state``) and each one's reach. Decoding moves served anchors that an attacker shifted
+        (quantised or noisy positions) back onto their records (``registered``), so that F_o†, the
+        codes and the view directions read the positions they were trained with.
     eps2d: the hidden render's screen-space dilation (``RasterOptions.eps2d``, added to each 2D
         covariance), None: the render options' own. The public render must keep Scaffold-GS's for
         the release to look the same in its viewer; the hidden render is the key holder's alone.
@@ -323,23 +323,26 @@ class PrivateHeads(nn.Module):
     def key_state(self, xyz: torch.Tensor) -> tuple[dict, dict]:
         """(tensors, description): what a key of these heads holds for a release whose anchors lie
         at xyz [N, 3]: the state dict and ``describe()``, with, in the box frame, ``anchor_record``
-        [S, 4]: the positions of the S anchors that serve there and each one's reach, half its
-        distance to the nearest other anchor of the release."""
+        [S, 4]: the positions of the S anchors that serve there and each one's reach, its distance
+        to the nearest other anchor of the release."""
         tensors = {name: value.detach() for name, value in self.state_dict().items()}
         described = self.describe()
         if self.serves_by_radius:
             served = xyz[self.serving_mask(xyz)].detach()
-            tensors["anchor_record"] = torch.cat([served, 0.5 * _nearest_other(served, xyz.detach())[:, None]], dim=1)
+            tensors["anchor_record"] = torch.cat([served, _nearest_other(served, xyz.detach())[:, None]], dim=1)
             described["recorded"] = len(served)
         return tensors, described
 
     @torch.no_grad()
     def registered(self, xyz: torch.Tensor) -> torch.Tensor:
-        """[N, 3]: anchor positions xyz [N, 3] with each entry of ``anchor_record`` taking back the
-        nearest anchor within its reach (half the distance to its nearest neighbour in the release
-        as written: an attacker's small shift, a quantisation), the others as they are; xyz itself
-        where the key holds no record or nothing moves. Only anchors within the serving radius plus
-        the largest reach are looked at."""
+        """[N, 3]: anchor positions xyz [N, 3] with anchors moved back onto the entries of
+        ``anchor_record``: pairs of an anchor and an entry closer than the entry's reach are taken
+        nearest first, each anchor and each entry once. An anchor shifted by less than half its reach
+        (an attacker's small move, a quantisation) is always given back to its own entry, since
+        every other pair it or its entry could form is longer; larger shifts are taken back as far as
+        the pairs stay unambiguous, and no unmoved anchor is ever taken by another's entry, whose
+        reach stops short of it. xyz itself where the key holds no record or nothing moves. Only
+        anchors within the serving radius plus the largest reach are looked at."""
         record = getattr(self, "anchor_record", None)
         if record is None or not len(record):
             return xyz
@@ -348,19 +351,23 @@ class PrivateHeads(nn.Module):
     def _register(self, xyz: torch.Tensor, record: torch.Tensor) -> torch.Tensor:
         where, reach = record[:, :3], record[:, 3]
         near = (self.box_distance(xyz) <= self.serving_radius + reach.max()).nonzero()[:, 0]
-        distance, entry = torch.cdist(xyz[near], where, compute_mode="donot_use_mm_for_euclid_dist").min(dim=1)
-        taken = distance < reach[entry]
-        # One anchor an entry, the nearest.
-        order = distance[taken].argsort()
-        near, entry = near[taken][order], entry[taken][order]
-        first = torch.full((len(where),), len(entry), device=xyz.device).scatter_reduce(
-            0, entry, torch.arange(len(entry), device=xyz.device), "amin")
-        first = first[first < len(entry)]
-        near, entry = near[first], entry[first]
-        if not len(near) or torch.equal(xyz[near], where[entry]):
+        distance = torch.cdist(xyz[near], where, compute_mode="donot_use_mm_for_euclid_dist")  # [Nn, S]
+        anchor, entry = (distance < reach[None]).nonzero(as_tuple=True)
+        order = distance[anchor, entry].argsort()
+        pairs, used_anchors, used_entries = [], set(), set()
+        for a, e in zip(anchor[order].tolist(), entry[order].tolist()):  # greedy, nearest pairs first
+            if a not in used_anchors and e not in used_entries:
+                used_anchors.add(a)
+                used_entries.add(e)
+                pairs.append((a, e))
+        if not pairs:
+            return xyz
+        taken = torch.tensor(pairs, device=xyz.device)
+        rows, entries = near[taken[:, 0]], taken[:, 1]
+        if torch.equal(xyz[rows], where[entries]):
             return xyz
         moved = xyz.clone()
-        moved[near] = where[entry]
+        moved[rows] = where[entries]
         return moved
 
     @torch.no_grad()
