@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..attacks import mean_neighbour_distance
 from ..model import ScaffoldHeads, make_mlp
 from ..kept import Kept
 from ..model.neural_gaussians import AnchorViewInputs
@@ -19,6 +20,9 @@ FRAMES = ("anchor", "box")
 # Inside the box every anchor is at distance 0 from it; this share of the distance to the box's
 # centre orders them without moving anyone outside by more than a thousandth of its distance.
 INSIDE_TIE_BREAK = 1e-3
+# An anchor record's reach stops this share short of the distance to the entry's nearest other
+# anchor, so that no float rounding lets an unmoved neighbour pair with the entry.
+REACH_MARGIN = 1e-3
 
 
 # The cells of a key's private codes, per axis of the contracted box frame, unless the key names its
@@ -26,17 +30,6 @@ INSIDE_TIE_BREAK = 1e-3
 # codes in the key", counts them in trained containers). Coarser cells share codes among
 # neighbouring anchors and lose less to moved anchors ("Private codes at 1080p in the garden").
 CODE_CELLS = 256
-
-
-def _nearest_other(points: torch.Tensor, cloud: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
-    """[S]: each of points [S, 3] (rows of cloud [N, 3]) to its nearest other entry of cloud, exact
-    differences (no matrix-product shortcut, which is coarser than the anchors' spacing far from
-    the origin); inf where the cloud has no other entry. Cloud rows are read in chunks."""
-    best = torch.full((len(points), 2), float("inf"), device=points.device)
-    for start in range(0, len(cloud), chunk):
-        d = torch.cdist(points, cloud[start:start + chunk], compute_mode="donot_use_mm_for_euclid_dist")
-        best = torch.cat([best, d], dim=1).topk(2, dim=1, largest=False).values
-    return best[:, 1]  # the nearest is the point itself
 
 
 def contract(where: torch.Tensor) -> torch.Tensor:
@@ -324,12 +317,14 @@ class PrivateHeads(nn.Module):
         """(tensors, description): what a key of these heads holds for a release whose anchors lie
         at xyz [N, 3]: the state dict and ``describe()``, with, in the box frame, ``anchor_record``
         [S, 4]: the positions of the S anchors that serve there and each one's reach, its distance
-        to the nearest other anchor of the release."""
+        to the nearest other anchor of the release (REACH_MARGIN short of it)."""
         tensors = {name: value.detach() for name, value in self.state_dict().items()}
         described = self.describe()
         if self.serves_by_radius:
-            served = xyz[self.serving_mask(xyz)].detach()
-            tensors["anchor_record"] = torch.cat([served, _nearest_other(served, xyz.detach())[:, None]], dim=1)
+            mask = self.serving_mask(xyz)
+            served = xyz[mask].detach()
+            reach = (1.0 - REACH_MARGIN) * mean_neighbour_distance(xyz, 1)[mask].to(served.dtype)
+            tensors["anchor_record"] = torch.cat([served, reach[:, None]], dim=1)
             described["recorded"] = len(served)
         return tensors, described
 
