@@ -14,7 +14,8 @@ Per case, in OUT/NAME (NAME = object_placement_sSEED), and per variant (``--vari
     securegs hide FLAGS --seed SEED --hide OBJECT --placement PLACEMENT [--hidden-up UP] [V's FLAGS] \\
         --out OUT/NAME/hide_V
     securegs audit OUT/NAME/hide_V/public --reference OUT/NAME/plain/model --key OUT/NAME/hide_V/key.safetensors --json
-    python scripts/robustness.py OUT/NAME/hide_V --attacks ATTACKS --draws DRAWS --out OUT/NAME/robustness_V
+    python scripts/robustness.py OUT/NAME/hide_V --attacks ATTACKS --draws DRAWS --out OUT/NAME/robustness_V \\
+        [--without-record]
 Then OUT/study.md and OUT/study.json: one row per case and variant, and each variant's detection AUC
 (``steganalysis.auc_by_model``, as ``scripts/audit_auc.py`` computes it) over all cases and per placement.
 ``--report`` (the same arguments) runs nothing and tables what the folders hold, for a study cut
@@ -92,7 +93,13 @@ def suffix(variant: str) -> str:
     return "" if variant == DEFAULT else f"_{variant}"
 
 
-def steps(case: dict, run: Path, flags: list[str], variants: dict, attacks: str, draws: int,
+def sweep_flags(sweep: dict) -> list[str]:
+    """scripts/robustness.py's flags for ``sweep``: {"attacks", "draws"[, "without_record": True]}."""
+    return ["--attacks", sweep["attacks"], "--draws", str(sweep["draws"]),
+            *(["--without-record"] if sweep.get("without_record") else [])]
+
+
+def steps(case: dict, run: Path, flags: list[str], variants: dict, sweep: dict,
           device: str) -> list[tuple[str, Path, list[str]]]:
     """The case's commands in order: (name, the file whose presence says it is done, command)."""
     cli = [sys.executable, "-m", "securegs_warp.cli"]
@@ -115,22 +122,21 @@ def steps(case: dict, run: Path, flags: list[str], variants: dict, attacks: str,
                     str(hide / "key.safetensors"), "--json"]),
             # robustness.json is rewritten after every attack: a marker says the sweep ended.
             (f"robustness{end}", run / f"robustness{end}.done",
-             [sys.executable, str(SCRIPTS / "robustness.py"), str(hide), "--attacks", attacks, "--draws", str(draws),
+             [sys.executable, str(SCRIPTS / "robustness.py"), str(hide), *sweep_flags(sweep),
               "--device", device, "--out", str(robustness)]),
         ]
     return out
 
 
-def settings(case: dict, flags: list[str], variants: dict, attacks: str, draws: int, devices: list[str]) -> str:
+def settings(case: dict, flags: list[str], variants: dict, sweep: dict, devices: list[str]) -> str:
     """What a case's results depend on, as the text of its case.json: a rerun with other settings
     must not reuse them. The kind of device counts (the tile size follows it, and so the cover)."""
     kinds = sorted({d.split(":")[0] for d in devices})
-    return json.dumps({"case": case, "flags": flags, "variants": variants, "attacks": attacks, "draws": draws,
-                       "devices": kinds}, sort_keys=True)
+    return json.dumps({"case": case, "flags": flags, "variants": variants, **sweep, "devices": kinds},
+                      sort_keys=True)
 
 
-def run_case(case: dict, out: Path, flags: list[str], variants: dict, attacks: str, draws: int,
-             device: str) -> str | None:
+def run_case(case: dict, out: Path, flags: list[str], variants: dict, sweep: dict, device: str) -> str | None:
     """Every step of one case not done yet, on ``device``; None, or what failed and where its log is.
     Once a step runs, every step after it runs again: its results may rest on the old ones."""
     run = out / case["name"]
@@ -139,7 +145,7 @@ def run_case(case: dict, out: Path, flags: list[str], variants: dict, attacks: s
         env["CUDA_VISIBLE_DEVICES"] = device.split(":", 1)[1]
         device = "cuda"
     stale = False
-    for name, done, command in steps(case, run, flags, variants, attacks, draws, device):
+    for name, done, command in steps(case, run, flags, variants, sweep, device):
         if done.is_file() and not stale:
             continue
         stale = True
@@ -174,7 +180,8 @@ def case_rows(case: dict, run: Path, variants) -> list[dict]:
         if not all(f.is_file() for f in files):
             continue
         hide, audit, swept = (json.loads(f.read_text()) for f in files)
-        sweep = {s["spec"]: s for s in swept["summary"]}
+        # The container's own rows: a sweep --without-record also holds the key's without the record.
+        sweep = {s["spec"]: s for s in swept["summary"] if s["model"] == f"hide{end}"}
         rows.append({
             "case": case["name"], "variant": variant, "sweep_ended": (run / f"robustness{end}.done").is_file(),
             "cover_plain": plain["psnr"], "cover": hide["psnr_public"],
@@ -259,6 +266,9 @@ def main():
     ap.add_argument("--attacks", default="prune-random,noise-feat",
                     help=f"attacks of the sweep (scripts/robustness.py; known: {','.join(SWEEP)})")
     ap.add_argument("--draws", type=int, default=3, help="draws of each random attack")
+    ap.add_argument("--without-record", action="store_true",
+                    help="sweep each container's key without its record of the serving anchors as well "
+                         "(scripts/robustness.py --without-record; in the case's robustness.md)")
     ap.add_argument("--devices", default="cpu", help="comma-separated: cpu, cuda, cuda:N (default: cpu)")
     ap.add_argument("--per-device", type=int, default=1, help="cases at once on each device")
     ap.add_argument("--out", default="runs/study")
@@ -287,13 +297,14 @@ def main():
     flags = ["--width", str(args.width), "--height", str(args.height), "--iterations", str(args.iterations),
              "--quiet"] + (["--scene", args.scene] if args.scene else [])
     # Every case's settings checked before anything trains, then recorded.
-    wanted = {c["name"]: settings(c, flags, variants, args.attacks, args.draws, devices) for c in cases}
+    sweep = {"attacks": args.attacks, "draws": args.draws, **({"without_record": True} if args.without_record else {})}
+    wanted = {c["name"]: settings(c, flags, variants, sweep, devices) for c in cases}
     for name, text in wanted.items():
         recorded = out / name / "case.json"
         if recorded.is_file() and recorded.read_text() != text:
             raise SystemExit(f"{out / name} holds a run of other settings ({recorded}); give another --out")
     if not args.report:
-        run_cases(cases, out, wanted, flags, variants, args.attacks, args.draws, devices, args.per_device)
+        run_cases(cases, out, wanted, flags, variants, sweep, devices, args.per_device)
     rows = {c["name"]: case_rows(c, out / c["name"], variants) for c in cases}
     missing = [f"{c['name']} ({v})" for c in cases for v in variants
                if v not in {r["variant"] for r in rows[c["name"]]}]
@@ -309,8 +320,8 @@ def main():
     print(table)
 
 
-def run_cases(cases: list[dict], out: Path, wanted: dict, flags: list[str], variants: dict, attacks: str,
-              draws: int, devices: list[str], per_device: int) -> None:
+def run_cases(cases: list[dict], out: Path, wanted: dict, flags: list[str], variants: dict, sweep: dict,
+              devices: list[str], per_device: int) -> None:
     """Record each case's settings (``wanted``: name -> settings JSON), then run every case's steps not
     done yet, ``per_device`` cases at once on each device; SystemExit listing the failures."""
     for name, text in wanted.items():
@@ -325,7 +336,7 @@ def run_cases(cases: list[dict], out: Path, wanted: dict, flags: list[str], vari
                     return
                 case = queue.pop(0)
             print(f"{case['name']} on {device}", flush=True)
-            failure = run_case(case, out, flags, variants, attacks, draws, device)
+            failure = run_case(case, out, flags, variants, sweep, device)
             with lock:
                 if failure:
                     failures.append(failure)
