@@ -327,7 +327,9 @@ def test_the_key_records_its_serving_anchors_and_takes_back_those_an_attacker_sh
     """A box-frame key holds its serving anchors' positions as released and each one's reach (the
     distance to its nearest other anchor). Anchors shifted by less than half their reach decode from
     the recorded positions, so the hidden render is the unattacked one; one shifted beyond every
-    entry's reach stays where it is; a key written without a record decodes the shifted positions."""
+    entry's reach stays where it is and no longer serves, nor does an anchor the key never served that
+    the attack moved into the serving radius; a key written without a record decodes the shifted
+    positions."""
     from securegs_warp.secure.heads import REACH_MARGIN, PrivateHeads
 
     model, meta = open_container(container / "public", container / "key.safetensors")
@@ -350,15 +352,26 @@ def test_the_key_records_its_serving_anchors_and_takes_back_those_an_attacker_sh
         outward = torch.nn.functional.normalize(xyz[far] - record[:, :3].mean(dim=0), dim=0)
         shifted[far] = xyz[far] + 2.0 * record[:, 3].max() * outward
         model.anchors.xyz.copy_(shifted)
-        taken_back = private.registered(model.anchors.xyz)
+        taken_back, rows = private.register(model.anchors.xyz)
         assert torch.cdist(shifted[far][None], record[:, :3]).squeeze(0).ge(record[:, 3]).all()  # beyond every reach
         assert torch.equal(taken_back[serving][1:], xyz[serving][1:]) and torch.equal(taken_back[far], shifted[far])
+        assert rows.tolist() == serving.nonzero()[:, 0].tolist()[1:]  # every anchor paired but the far one
         shifted[far] = xyz[far] + 0.45 * record[0, 3] * direction[0]
+        # An anchor the key never served, moved inside the serving radius away from every entry's reach.
+        stray = int((~serving).nonzero()[0])
+        box = private.box
+        inside = box[0] + (box[1] - box[0]) * torch.rand(4096, 3, generator=torch.Generator().manual_seed(1))
+        clear = torch.cdist(inside, record[:, :3]).gt(record[:, 3].max()).all(dim=1) \
+            & (private.box_distance(inside) <= private.serving_radius)
+        assert clear.any()
+        shifted[stray] = inside[clear][0]
         model.anchors.xyz.copy_(shifted)
+        assert stray not in private.register(model.anchors.xyz)[1].tolist()
         assert torch.equal(model.render_hidden(cam, CPU_RASTER)["image"], unattacked)
         older = PrivateHeads(model.heads, **{k: v for k, v in meta["heads"].items() if k != "recorded"})
         older.load_state_dict({k: v for k, v in private.state_dict().items() if k != "anchor_record"})
-        assert older.registered(model.anchors.xyz) is model.anchors.xyz
+        positions, rows = older.register(model.anchors.xyz)
+        assert positions is model.anchors.xyz and rows is None
         bare = type(model)(model.anchors, model.heads, [older])
         assert not torch.equal(bare.render_hidden(cam, CPU_RASTER)["image"], unattacked)
     with pytest.raises(ValueError, match="frame='box'"):

@@ -152,8 +152,9 @@ class PrivateHeads(nn.Module):
     recorded: in the box frame, the rows of ``anchor_record`` (0: a key without it, as written before
         it existed): the serving anchors' positions as the release was written
         (``key_state``) and each one's reach. Decoding moves served anchors that an attacker shifted
-        (quantised or noisy positions) back onto their records (``registered``), so that F_o†, the
-        codes and the view directions read the positions they were trained with.
+        (quantised or noisy positions) back onto their records (``register``), so that F_o†, the
+        codes and the view directions read the positions they were trained with, and then serves
+        the anchors paired with an entry alone.
     eps2d: the hidden render's screen-space dilation (``RasterOptions.eps2d``, added to each 2D
         covariance), None: the render options' own. The public render must keep Scaffold-GS's for
         the release to look the same in its viewer; the hidden render is the key holder's alone.
@@ -207,7 +208,7 @@ class PrivateHeads(nn.Module):
                 raise ValueError("an anchor record holds a box frame's serving anchors: it needs frame='box' "
                                  "and serving >= 1")
             self.register_buffer("anchor_record", torch.zeros(int(recorded), 4))
-        self._registered = Kept()  # the last registered positions, while positions and record are unchanged
+        self._registration = Kept()  # the last ``register``, while positions, record and box are unchanged
         self.bits = None
         self.set_message(message, bit_seed, bit_cell)
         self._serving = Kept()  # the last serving_mask, while positions, radius and box are unchanged
@@ -329,21 +330,29 @@ class PrivateHeads(nn.Module):
         return tensors, described
 
     @torch.no_grad()
-    def registered(self, xyz: torch.Tensor) -> torch.Tensor:
-        """[N, 3]: anchor positions xyz [N, 3] with anchors moved back onto the entries of
-        ``anchor_record``: pairs of an anchor and an entry closer than the entry's reach are taken
-        nearest first, each anchor and each entry once. An anchor shifted by less than half its reach
-        (an attacker's small move, a quantisation) is always given back to its own entry, since
-        every other pair it or its entry could form is longer; larger shifts are taken back as far as
-        the pairs stay unambiguous, and no unmoved anchor is ever taken by another's entry, whose
-        reach stops short of it. xyz itself where the key holds no record or nothing moves. Only
-        anchors within the serving radius plus the largest reach are looked at."""
+    def register(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(positions [N, 3], rows [P] long ascending or None): anchor positions xyz [N, 3] with
+        anchors moved back onto the entries of ``anchor_record``, and the anchors paired with an
+        entry, which alone then serve. Pairs of an anchor and an entry closer than the entry's reach
+        are taken nearest first, each anchor and each entry once. An anchor shifted by less than half
+        its reach (an attacker's small move, a quantisation) is always given back to its own entry,
+        since every other pair it or its entry could form is longer; larger shifts are taken back as
+        far as the pairs stay unambiguous, and no unmoved anchor is ever taken by another's entry,
+        whose reach stops short of it.
+
+        Serving the paired anchors alone keeps out the anchors the key never served that the attack
+        moved into the serving radius (they would paint their Gaussians into the box) and the
+        recorded ones moved beyond their reach (decoded at a wrong position, they do more harm than
+        their absence, which robust training's dropout prepares for). Where nothing moved (no record,
+        no anchor off its entry: an unattacked or a pruned release) it is (xyz itself, None) and the
+        serving radius decides, as it does without a record. Only anchors within the serving radius
+        plus the largest reach are looked at."""
         record = getattr(self, "anchor_record", None)
         if record is None or not len(record):
-            return xyz
-        return self._registered.get((xyz, record, self.box), lambda: self._register(xyz, record))
+            return xyz, None
+        return self._registration.get((xyz, record, self.box), lambda: self._register(xyz, record))
 
-    def _register(self, xyz: torch.Tensor, record: torch.Tensor) -> torch.Tensor:
+    def _register(self, xyz: torch.Tensor, record: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         where, reach = record[:, :3], record[:, 3]
         near = (self.box_distance(xyz) <= self.serving_radius + reach.max()).nonzero()[:, 0]
         distance = torch.cdist(xyz[near], where, compute_mode="donot_use_mm_for_euclid_dist")  # [Nn, S]
@@ -356,14 +365,14 @@ class PrivateHeads(nn.Module):
                 used_entries.add(e)
                 pairs.append((a, e))
         if not pairs:
-            return xyz
+            return xyz, None
         taken = torch.tensor(pairs, device=xyz.device)
         rows, entries = near[taken[:, 0]], taken[:, 1]
         if torch.equal(xyz[rows], where[entries]):
-            return xyz
+            return xyz, None
         moved = xyz.clone()
         moved[rows] = where[entries]
-        return moved
+        return moved, rows.sort().values
 
     @torch.no_grad()
     def nearest_serving(self, xyz: torch.Tensor, count: int) -> torch.Tensor:

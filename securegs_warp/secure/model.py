@@ -71,7 +71,7 @@ class SecureModel(ScaffoldModel):
         rows = None
         anchors = self._key_anchors(private) if anchors is None else anchors
         if capture and self.fixed_rows(secret) and captured.replayable(self.anchors.xyz) \
-                and torch.is_grad_enabled() and not getattr(anchors, "registered", False):
+                and torch.is_grad_enabled() and getattr(anchors, "registered", None) is None:
             if secret not in self._captured or self._captured[secret].private is not private:
                 self._captured[secret] = captured.CapturedRows(private)
             rows = self._captured[secret]
@@ -107,8 +107,10 @@ class SecureModel(ScaffoldModel):
         ``PerturbedAnchors`` of a key's S serving rows only (``serving_rows``) decode every row:
         ([S] True, arange(S), their ``keep``)."""
         keep = getattr(anchors, "keep", None)
-        if getattr(anchors, "registered", False):  # the key's own positions: served by its radius
-            return private.serving_mask(anchors.xyz), private.serving_index(anchors.xyz), keep
+        registered = getattr(anchors, "registered", None)
+        if registered is not None:  # moved back onto the key's record: its paired anchors serve
+            mask = torch.zeros(anchors.num_anchors, dtype=torch.bool, device=registered.device)
+            return mask.index_fill_(0, registered, True), registered, keep
         if getattr(anchors, "serving_rows", False):
             n, device = anchors.num_anchors, anchors.xyz.device
             return torch.ones(n, dtype=torch.bool, device=device), torch.arange(n, device=device), keep
@@ -138,17 +140,18 @@ class SecureModel(ScaffoldModel):
         source = private.hidden_offsets if private.offset_mlp is not None else self._explicit_offsets
         anchors = self._key_anchors(private)
         return decode_all(anchors, private.decoder, camera, offset_source=source,
-                          anchor_source=private.anchor_source, anchor_mask=private.serving_mask(anchors.xyz))
+                          anchor_source=private.anchor_source,
+                          anchor_mask=self._decoding_rows(private, anchors, camera)[0])
 
     def _key_anchors(self, private: PrivateHeads):
         """What ``private`` decodes of this model's anchors: the anchors themselves, or, where the key's
-        record moves some back (``PrivateHeads.registered``: an attacker shifted them), a
-        ``PerturbedAnchors`` view with those positions, marked ``registered``."""
-        xyz = private.registered(self.anchors.xyz)
-        if xyz is self.anchors.xyz:
+        record moves some back (``PrivateHeads.register``: an attacker shifted them), a
+        ``PerturbedAnchors`` view with those positions whose ``registered`` rows serve."""
+        xyz, rows = private.register(self.anchors.xyz)
+        if rows is None:
             return self.anchors
         a = self.anchors
-        return PerturbedAnchors(xyz, a.feat, a.offsets, a.scaling, a.rotation, a.opacity, registered=True)
+        return PerturbedAnchors(xyz, a.feat, a.offsets, a.scaling, a.rotation, a.opacity, registered=rows)
 
     def _explicit_offsets(self, inputs: AnchorViewInputs) -> torch.Tensor:
         """w/o HDGER: stored per-anchor hidden offsets [Nv, k, 3], scaled like the public ones."""

@@ -64,9 +64,10 @@ class PerturbedAnchors(AnchorSizes):
     serving index, instead of the model's N (a replayed hidden branch's buffers,
     ``secure.hidden_graph``): the key decodes every row. spread: attribute name -> [1, ...], the
     standard deviation of that attribute's columns over the model's N anchors, which scales noise
-    on these rows (None, or a name missing: their own columns' spread). registered: True where xyz
-    holds a model's positions moved back onto its key's record (``SecureModel._key_anchors``, no
-    perturbation): the key serves them by its radius, as it serves the model's own.
+    on these rows (None, or a name missing: their own columns' spread). registered: [P] long,
+    ascending, where xyz holds a model's positions moved back onto its key's record
+    (``SecureModel._key_anchors``, no perturbation): the anchors paired with an entry, which alone
+    the key serves (``PrivateHeads.register``); None otherwise.
     """
 
     xyz: torch.Tensor
@@ -78,7 +79,7 @@ class PerturbedAnchors(AnchorSizes):
     keep: torch.Tensor | None = None
     serving_rows: bool = False
     spread: dict | None = None
-    registered: bool = False
+    registered: torch.Tensor | None = None
 
 
 def perturb(anchors, attacks: list[Attack], generator: torch.Generator,
