@@ -314,6 +314,7 @@ def main():
     table = markdown(table_rows, aucs)
     if missing:
         table += f"\nNot in the table (not trained, audited and swept yet): {', '.join(missing)}.\n"
+    out.mkdir(parents=True, exist_ok=True)  # --report on a folder a study never reached
     atomic_write(out / "study.md", lambda f: f.write(table.encode()))
     data = json.dumps({"args": vars(args), "rows": table_rows, "aucs": aucs, "missing": missing}, indent=1).encode()
     atomic_write(out / "study.json", lambda f: f.write(data))
