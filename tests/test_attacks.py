@@ -368,6 +368,12 @@ def test_the_key_records_its_serving_anchors_and_takes_back_those_an_attacker_sh
         model.anchors.xyz.copy_(shifted)
         assert stray not in private.register(model.anchors.xyz)[1].tolist()
         assert torch.equal(model.render_hidden(cam, CPU_RASTER)["image"], unattacked)
+        alone = xyz.clone()  # the stray moved in alone, the served anchors untouched
+        alone[stray] = shifted[stray]
+        model.anchors.xyz.copy_(alone)
+        positions, rows = private.register(model.anchors.xyz)
+        assert positions is model.anchors.xyz and rows.tolist() == serving.nonzero()[:, 0].tolist()
+        assert torch.equal(model.render_hidden(cam, CPU_RASTER)["image"], unattacked)
         older = PrivateHeads(model.heads, **{k: v for k, v in meta["heads"].items() if k != "recorded"})
         older.load_state_dict({k: v for k, v in private.state_dict().items() if k != "anchor_record"})
         positions, rows = older.register(model.anchors.xyz)

@@ -343,10 +343,10 @@ class PrivateHeads(nn.Module):
         Serving the paired anchors alone keeps out the anchors the key never served that the attack
         moved into the serving radius (they would paint their Gaussians into the box) and the
         recorded ones moved beyond their reach (decoded at a wrong position, they do more harm than
-        their absence, which robust training's dropout prepares for). Where nothing moved (no record,
-        no anchor off its entry: an unattacked or a pruned release) it is (xyz itself, None) and the
-        serving radius decides, as it does without a record. Only anchors within the serving radius
-        plus the largest reach are looked at."""
+        their absence, which robust training's dropout prepares for). Where the pairs are the anchors
+        within the serving radius and none is off its entry (an unattacked or a pruned release), where
+        nothing pairs, or where the key holds no record, it is (xyz itself, None): the radius decides,
+        as it does without a record. Only anchors within the serving radius plus the largest reach are looked at."""
         record = getattr(self, "anchor_record", None)
         if record is None or not len(record):
             return xyz, None
@@ -364,12 +364,15 @@ class PrivateHeads(nn.Module):
                 used_anchors.add(a)
                 used_entries.add(e)
                 pairs.append((a, e))
-        if not pairs:
+        if not pairs:  # every anchor moved beyond reach, or none near: nothing to take back
             return xyz, None
         taken = torch.tensor(pairs, device=xyz.device)
         rows, entries = near[taken[:, 0]], taken[:, 1]
         if torch.equal(xyz[rows], where[entries]):
-            return xyz, None
+            inside = self.box_distance(xyz) <= self.serving_radius
+            if int(inside.sum()) == len(rows) and bool(inside[rows].all()):
+                return xyz, None
+            return xyz, rows.sort().values  # on their entries, but another anchor was moved inside the radius
         moved = xyz.clone()
         moved[rows] = where[entries]
         return moved, rows.sort().values
