@@ -365,21 +365,22 @@ def test_the_key_records_its_serving_anchors_and_takes_back_those_an_attacker_sh
             & (private.box_distance(inside) <= private.serving_radius)
         assert clear.any()
         shifted[stray] = inside[clear][0]
+        older = PrivateHeads(model.heads, **{k: v for k, v in meta["heads"].items() if k != "recorded"})
+        older.load_state_dict({k: v for k, v in private.state_dict().items() if k != "anchor_record"})
+        bare = type(model)(model.anchors, model.heads, [older])  # the same key without its record
         model.anchors.xyz.copy_(shifted)
         assert stray not in private.register(model.anchors.xyz)[1].tolist()
         assert torch.equal(model.render_hidden(cam, CPU_RASTER)["image"], unattacked)
+        assert not torch.equal(bare.render_hidden(cam, CPU_RASTER)["image"], unattacked)  # decodes the shifts
         alone = xyz.clone()  # the stray moved in alone, the served anchors untouched
         alone[stray] = shifted[stray]
         model.anchors.xyz.copy_(alone)
         positions, rows = private.register(model.anchors.xyz)
         assert positions is model.anchors.xyz and rows.tolist() == serving.nonzero()[:, 0].tolist()
         assert torch.equal(model.render_hidden(cam, CPU_RASTER)["image"], unattacked)
-        older = PrivateHeads(model.heads, **{k: v for k, v in meta["heads"].items() if k != "recorded"})
-        older.load_state_dict({k: v for k, v in private.state_dict().items() if k != "anchor_record"})
         positions, rows = older.register(model.anchors.xyz)
         assert positions is model.anchors.xyz and rows is None
-        bare = type(model)(model.anchors, model.heads, [older])
-        assert not torch.equal(bare.render_hidden(cam, CPU_RASTER)["image"], unattacked)
+        assert not torch.equal(bare.render_hidden(cam, CPU_RASTER)["image"], unattacked)  # the radius serves the stray
     with pytest.raises(ValueError, match="frame='box'"):
         PrivateHeads(ScaffoldHeads(2, 2), recorded=4)
 

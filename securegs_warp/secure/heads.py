@@ -154,7 +154,7 @@ class PrivateHeads(nn.Module):
         (``key_state``) and each one's reach. Decoding moves served anchors that an attacker shifted
         (quantised or noisy positions) back onto their records (``register``), so that F_o†, the
         codes and the view directions read the positions they were trained with, and then serves
-        the anchors paired with an entry alone.
+        the anchors paired with an entry alone (the radius still serves where nothing pairs).
     eps2d: the hidden render's screen-space dilation (``RasterOptions.eps2d``, added to each 2D
         covariance), None: the render options' own. The public render must keep Scaffold-GS's for
         the release to look the same in its viewer; the hidden render is the key holder's alone.
@@ -350,13 +350,15 @@ class PrivateHeads(nn.Module):
         record = getattr(self, "anchor_record", None)
         if record is None or not len(record):
             return xyz, None
-        return self._registration.get((xyz, record, self.box), lambda: self._register(xyz, record))
+        return self._registration.get((xyz, record, self.box, self.serving_radius),
+                                      lambda: self._register(xyz, record))
 
     def _register(self, xyz: torch.Tensor, record: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         where, reach = record[:, :3], record[:, 3]
         near = (self.box_distance(xyz) <= self.serving_radius + reach.max()).nonzero()[:, 0]
         distance = torch.cdist(xyz[near], where, compute_mode="donot_use_mm_for_euclid_dist")  # [Nn, S]
-        anchor, entry = (distance < reach[None]).nonzero(as_tuple=True)
+        # An anchor on an entry always pairs with it, even where the reach is 0 (two anchors at one place).
+        anchor, entry = ((distance < reach[None]) | (distance == 0)).nonzero(as_tuple=True)
         order = distance[anchor, entry].argsort()
         pairs, used_anchors, used_entries = [], set(), set()
         for a, e in zip(anchor[order].tolist(), entry[order].tolist()):  # greedy, nearest pairs first

@@ -59,7 +59,8 @@ class SecureModel(ScaffoldModel):
         visible: [N] bool, the anchors of ``anchors`` visible from ``camera`` (``visible_anchor_mask``)
         when the caller has them already (the public render of the same view): not computed again.
         capture: decode from CUDA graphs (``CapturedRows``) where that gives the same render: a
-        box-frame key decoding its serving anchors (``fixed_rows``) on CUDA, gradients enabled.
+        box-frame key decoding its serving anchors (``fixed_rows``) on CUDA, gradients enabled, and
+        no anchor registered with the key's record (``_key_anchors``: their rows vary with the attack).
         compact: False renders the Gaussians that fail the opacity test at opacity 0 instead of
         leaving them out (the same image and gradients, without a host synchronisation; the
         Gaussians' per-row statistics then count them, see ``generate_neural_gaussians``).
@@ -105,7 +106,8 @@ class SecureModel(ScaffoldModel):
         fixed, so the captured decoding and rasterize still replay.
 
         ``PerturbedAnchors`` of a key's S serving rows only (``serving_rows``) decode every row:
-        ([S] True, arange(S), their ``keep``)."""
+        ([S] True, arange(S), their ``keep``). ``PerturbedAnchors`` registered with the key's record
+        (``_key_anchors``) decode their ``registered`` rows."""
         keep = getattr(anchors, "keep", None)
         registered = getattr(anchors, "registered", None)
         if registered is not None:  # moved back onto the key's record: its paired anchors serve
@@ -145,8 +147,9 @@ class SecureModel(ScaffoldModel):
 
     def _key_anchors(self, private: PrivateHeads):
         """What ``private`` decodes of this model's anchors: the anchors themselves, or, where the key's
-        record moves some back (``PrivateHeads.register``: an attacker shifted them), a
-        ``PerturbedAnchors`` view with those positions whose ``registered`` rows serve."""
+        record finds them attacked (``PrivateHeads.register``: anchors shifted off their entries, or
+        one it never served moved inside its radius), a ``PerturbedAnchors`` view with the registered
+        positions whose ``registered`` rows alone serve."""
         xyz, rows = private.register(self.anchors.xyz)
         if rows is None:
             return self.anchors

@@ -65,9 +65,10 @@ class PerturbedAnchors(AnchorSizes):
     ``secure.hidden_graph``): the key decodes every row. spread: attribute name -> [1, ...], the
     standard deviation of that attribute's columns over the model's N anchors, which scales noise
     on these rows (None, or a name missing: their own columns' spread). registered: [P] long,
-    ascending, where xyz holds a model's positions moved back onto its key's record
-    (``SecureModel._key_anchors``, no perturbation): the anchors paired with an entry, which alone
-    the key serves (``PrivateHeads.register``); None otherwise.
+    ascending, where xyz holds a model's positions registered with its key's record
+    (``SecureModel._key_anchors``, no perturbation; moved back onto it, or left in place where only
+    an anchor the key never served was moved inside its radius): the anchors paired with an entry,
+    which alone the key serves (``PrivateHeads.register``); None otherwise.
     """
 
     xyz: torch.Tensor
