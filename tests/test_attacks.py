@@ -345,7 +345,8 @@ def test_the_key_records_its_serving_anchors_and_takes_back_those_an_attacker_sh
     cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
     with torch.no_grad():
         unattacked = model.render_hidden(cam, CPU_RASTER)["image"]
-        direction = torch.nn.functional.normalize(torch.randn(len(record), 3, generator=torch.Generator().manual_seed(0)))
+        direction = torch.nn.functional.normalize(
+            torch.randn(len(record), 3, generator=torch.Generator().manual_seed(0)))
         shifted = xyz.clone()
         shifted[serving] += 0.45 * record[:, 3:] * direction
         far = int(serving.nonzero()[0])

@@ -346,7 +346,8 @@ class PrivateHeads(nn.Module):
         their absence, which robust training's dropout prepares for). Where the pairs are the anchors
         within the serving radius and none is off its entry (an unattacked or a pruned release), where
         nothing pairs, or where the key holds no record, it is (xyz itself, None): the radius decides,
-        as it does without a record. Only anchors within the serving radius plus the largest reach are looked at."""
+        as it does without a record. Only anchors within the serving radius plus the largest reach
+        are looked at."""
         record = getattr(self, "anchor_record", None)
         if record is None or not len(record):
             return xyz, None
@@ -371,7 +372,7 @@ class PrivateHeads(nn.Module):
         taken = torch.tensor(pairs, device=xyz.device)
         rows, entries = near[taken[:, 0]], taken[:, 1]
         if torch.equal(xyz[rows], where[entries]):
-            inside = self.box_distance(xyz) <= self.serving_radius
+            inside = self.serving_mask(xyz)
             if int(inside.sum()) == len(rows) and bool(inside[rows].all()):
                 return xyz, None
             return xyz, rows.sort().values  # on their entries, but another anchor was moved inside the radius

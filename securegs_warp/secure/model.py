@@ -110,7 +110,7 @@ class SecureModel(ScaffoldModel):
         (``_key_anchors``) decode their ``registered`` rows."""
         keep = getattr(anchors, "keep", None)
         registered = getattr(anchors, "registered", None)
-        if registered is not None:  # moved back onto the key's record: its paired anchors serve
+        if registered is not None:  # registered with the key's record: its paired anchors serve
             mask = torch.zeros(anchors.num_anchors, dtype=torch.bool, device=registered.device)
             return mask.index_fill_(0, registered, True), registered, keep
         if getattr(anchors, "serving_rows", False):
