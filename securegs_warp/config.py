@@ -230,6 +230,8 @@ GRADIENT_SHARES = (0.1, 1.0)
 ROBUST_RECIPE = "prune-random:0.3+noise-feat:0.3"
 ROBUST_BIT_MARGIN = 0.25
 BIT_MARGIN = 1.0
+# When the bit projection begins (SecureConfig.bits_from).
+BITS_FROM = ("start", "growth-end")
 # The finishing phase (a fraction of the iterations) a hidden object in the cover mode gets by default:
 # the measured gain in hidden PSNR for about a tenth more training time (docs/results.md, "The
 # finishing phase").
@@ -264,6 +266,12 @@ class SecureConfig:
         bits live in the public anchor features, so a larger margin costs the cover fidelity.
         None: ROBUST_BIT_MARGIN where ``robust`` "auto" chose ROBUST_RECIPE, BIT_MARGIN otherwise
         (``margin``).
+    bits_from: when the bit projection (bit_margin) begins: "start", after every step of the run;
+        "growth-end", after every step once the density strategy has made its last change to the
+        anchor set (``update_until``). Until then the release trains as plain Scaffold-GS of its
+        seed does, so its anchors (grown and pruned by that training) are the plain model's, and
+        the anchor cloud says nothing of the bits or the hidden object; the public heads then have
+        the rest of the run to adapt to the projected features.
     bit_cell_voxels: the edge, in base voxels, of the keyed grid whose cells deal the anchors among
         the bits (the key stores the edge in scene units): an anchor keeps its bit while its position
         moves by less than its distance to a cell face, so a coarser grid survives larger position
@@ -350,6 +358,7 @@ class SecureConfig:
     feature_grad_until: float = 1.0
     robust: str | None = "auto"
     bit_margin: float | None = None
+    bits_from: str = "start"
     bit_cell_voxels: float = 4.0
     hdger: bool = True
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
@@ -469,6 +478,8 @@ class SecureConfig:
             raise ValueError(f"hidden_weight (λ) must be >= 0, got {self.hidden_weight}")
         if self.bit_margin is not None and not self.bit_margin > 0.0:
             raise ValueError(f"bit_margin must be > 0, got {self.bit_margin}")
+        if self.bits_from not in BITS_FROM:
+            raise ValueError(f"bits_from must be one of {', '.join(BITS_FROM)}, got {self.bits_from!r}")
         if not self.bit_cell_voxels > 0.0:
             raise ValueError(f"bit_cell_voxels must be > 0, got {self.bit_cell_voxels}")
         for name, meaning in (("hidden_feature_grad", "a share of a gradient"),

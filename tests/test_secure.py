@@ -536,6 +536,28 @@ def test_by_default_an_objects_release_is_the_plain_scaffold_gs_model_of_its_see
     assert sum(row.get("grown", 0) for row in log) > 0  # the density strategy ran, and grew the same anchors
 
 
+def test_bits_from_growth_end_leaves_the_plain_models_anchors(tmp_path):
+    """With --bits-from growth-end the bits are projected only once the density strategy has fixed the
+    anchors: a container of an object and bits keeps the anchor positions that plain Scaffold-GS of
+    its seed grew, float for float, and still reads its message; projected from the start, the
+    bits move the features during growth and the anchors grown differ."""
+    small = ["--width", "32", "--height", "24", "--train-views", "4", "--test-views", "1", "--iterations", "60",
+             "--quiet", "--seed", "3", "--device", "cpu"]
+    with pytest.raises(ValueError, match="bits_from must be one of start, growth-end"):
+        SecureConfig(bits_from="middle")
+    assert main(["train", "--out", str(tmp_path / "plain"), *small]) == 0
+    runs = {"late": ["--bits-from", "growth-end"], "start": []}
+    for name, extra in runs.items():
+        assert main(["hide", "--out", str(tmp_path / name), "--hide", "mug", "--payload", "object+bits:16",
+                     *small, *extra]) == 0
+    xyz = {name: open_container(tmp_path / name / "public")[0].anchors.xyz for name in runs}
+    plain = open_container(tmp_path / "plain" / "model")[0].anchors.xyz
+    assert torch.equal(xyz["late"], plain)
+    assert xyz["start"].shape != plain.shape or not torch.equal(xyz["start"], plain)
+    metrics = json.loads((tmp_path / "late" / "metrics.json").read_text())
+    assert metrics["bit_accuracy"] == 1.0
+
+
 def test_feature_grad_until_frees_the_public_features(hidden_scene):
     """After feature_grad_until of the run no ℓ_hid gradient reaches f_v; the private heads still get theirs."""
     config = TrainConfig(iterations=4, raster=CPU_RASTER)
@@ -936,7 +958,7 @@ def test_after_update_refits_serving_and_bits_when_anchors_change(hidden_scene):
     anchors.prune_anchors(drop, trainer.optimizer)
     with torch.no_grad():
         anchors.feat.mul_(-1.0)  # undo the projection: most anchors now disagree with their bit
-    trainer.after_update()
+    trainer.after_update(trainer.step_count + 1)
     refit = private.serving_radius.clone()
     private.fix_serving(anchors.xyz)
     assert torch.equal(refit, private.serving_radius) and not torch.equal(refit, radius)

@@ -385,13 +385,13 @@ class SecureTrainer(ScaffoldTrainer):
         return crops[view]
 
     @torch.no_grad()
-    def after_update(self) -> None:
+    def after_update(self, step: int) -> None:
         """Refit each box-frame key's serving radius to the anchors densification left
-        (``PrivateHeads.fix_serving``), then move each anchor feature the least distance that makes
-        its vote agree with its bit of every message by bit_margin (a projection, not a loss: a
-        loss's gradient goes through Adam, which turns it into steps of the learning rate on every
-        coordinate and cost the cover 0.3-1.2 dB; the projection moves a feature along one
-        direction, only as far as needed)."""
+        (``PrivateHeads.fix_serving``), then, from the step ``bits_from`` names on, move each anchor
+        feature the least distance that makes its vote agree with its bit of every message by
+        bit_margin (a projection, not a loss: a loss's gradient goes through Adam, which turns it
+        into steps of the learning rate on every coordinate and cost the cover 0.3-1.2 dB; the
+        projection moves a feature along one direction, only as far as needed)."""
         anchors = self.model.anchors
         # Anchor positions train at learning rate 0 (as Scaffold-GS's), so they change only when
         # densification (or a restore) replaces the tensor: the serving radii and each anchor's bit
@@ -404,7 +404,7 @@ class SecureTrainer(ScaffoldTrainer):
 
         projections = self._projections.get((anchors.xyz, *(private.bits for private in self.model.secrets)), refit)
         decoders = [private.bits for private in self.model.secrets if private.bits is not None]
-        if not decoders:
+        if not decoders or (self.secure.bits_from == "growth-end" and step <= self.strategy.update_until):
             return
         feat = anchors.feat.detach()
         for _ in range(PROJECTION_ROUNDS if len(decoders) > 1 else 1):

@@ -176,7 +176,7 @@ class ViewTrainer:
             if self.config.densify:
                 changed = self.densify(step, branches)
             self.optimizer.step()
-            self.after_update()
+            self.after_update(step)
 
         skipped = self.checked_update(self.optimizer, renders, update)
         if skipped and self.config.densify:
@@ -205,9 +205,9 @@ class ViewTrainer:
         optimizer.zero_grad(set_to_none=True)
         return skipped
 
-    def after_update(self) -> None:
-        """Hook after each optimizer step (the SecureGS trainer moves the anchor features onto the
-        message there)."""
+    def after_update(self, step: int) -> None:
+        """Hook after step ``step``'s optimizer update (the SecureGS trainer moves the anchor
+        features onto the message there)."""
 
     def extra_losses(self, index: int, renders: list, branches: dict, step: int) -> dict:
         """Hook for further losses: appends (out, target, weight) to ``renders`` for each further render
