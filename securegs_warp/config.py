@@ -266,12 +266,15 @@ class SecureConfig:
         bits live in the public anchor features, so a larger margin costs the cover fidelity.
         None: ROBUST_BIT_MARGIN where ``robust`` "auto" chose ROBUST_RECIPE, BIT_MARGIN otherwise
         (``margin``).
-    bits_from: when the bit projection (bit_margin) begins: "start", after every step of the run;
-        "growth-end", after every step once the density strategy has made its last change to the
-        anchor set (``update_until``). Until then the release trains as plain Scaffold-GS of its
-        seed does, so its anchors (grown and pruned by that training) are the plain model's, and
-        the anchor cloud says nothing of the bits or the hidden object; the public heads then have
-        the rest of the run to adapt to the projected features.
+    bits_from: when the bit projection (bit_margin) begins: "growth-end" (the default), after every
+        step once the density strategy has made its last change to the anchor set (``update_until``;
+        from the first step when nothing densifies); "start", after every step of the run (the
+        default before 2026-11-29, which runs recorded without this field keep: RECORDED_BEFORE).
+        Until growth ends the release trains as plain Scaffold-GS of its seed does, so its anchors
+        (grown and pruned by that training) are the plain model's, and the anchor cloud says
+        nothing of the bits (nor, with the private codes, of the hidden object); the public heads
+        then have the rest of the run to adapt to the projected features (docs/results.md, "Bits
+        after growth").
     bit_cell_voxels: the edge, in base voxels, of the keyed grid whose cells deal the anchors among
         the bits (the key stores the edge in scene units): an anchor keeps its bit while its position
         moves by less than its distance to a cell face, so a coarser grid survives larger position
@@ -358,7 +361,7 @@ class SecureConfig:
     feature_grad_until: float = 1.0
     robust: str | None = "auto"
     bit_margin: float | None = None
-    bits_from: str = "start"
+    bits_from: str = "growth-end"
     bit_cell_voxels: float = 4.0
     hdger: bool = True
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
@@ -623,10 +626,17 @@ def to_dict(config) -> dict:
     return out
 
 
+# Fields whose default differs from how runs recorded before the field existed trained: (config
+# class name, field) -> the value those runs used, which a recorded config without the field takes,
+# so that reading or resuming such a run keeps what it did.
+RECORDED_BEFORE = {("SecureConfig", "bits_from"): "start"}
+
+
 def from_dict(cls, data: dict, where: str = ""):
     """Build config dataclass ``cls`` from ``to_dict`` output; unknown fields are refused by name.
 
-    Fields missing from ``data`` take their defaults (a config written before a field existed).
+    Fields missing from ``data`` (a config written before a field existed) take the value such runs
+    used (RECORDED_BEFORE), else their defaults.
     """
     if not isinstance(data, dict):
         raise ValueError(f"{where or cls.__name__}: expected a mapping of options, got {type(data).__name__}")
@@ -635,7 +645,8 @@ def from_dict(cls, data: dict, where: str = ""):
     unknown = sorted(set(data) - set(known))
     if unknown:
         raise ValueError(f"unknown option {_path(where, unknown[0])!r} (known: {', '.join(sorted(known))})")
-    kwargs = {}
+    kwargs = {name: value for (owner, name), value in RECORDED_BEFORE.items()
+              if owner == cls.__name__ and name not in data}
     for name, value in data.items():
         kwargs[name] = _coerce(hints[name], value, _path(where, name))
     return cls(**kwargs)

@@ -39,6 +39,17 @@ def test_round_trip_through_json():
     assert from_dict(RunConfig, to_dict(RunConfig())).secure is None
 
 
+def test_a_config_recorded_before_a_field_existed_keeps_what_its_run_did():
+    """A recorded secure section without bits_from was trained with the bits projected from the
+    start (RECORDED_BEFORE), whatever the default is now; a config that names it keeps its value."""
+    data = to_dict(RunConfig(secure=SecureConfig()))
+    assert data["secure"]["bits_from"] == SecureConfig().bits_from == "growth-end"
+    del data["secure"]["bits_from"]
+    assert from_dict(RunConfig, data).secure.bits_from == "start"
+    data["secure"]["bits_from"] = "growth-end"
+    assert from_dict(RunConfig, data).secure.bits_from == "growth-end"
+
+
 def test_every_leaf_field_has_one_name():
     paths = field_paths(RunConfig(secure=SecureConfig()))
     assert "train.raster.tile_size" in paths and "secure.strategy.r_down" in paths

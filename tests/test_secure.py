@@ -537,25 +537,41 @@ def test_by_default_an_objects_release_is_the_plain_scaffold_gs_model_of_its_see
 
 
 def test_bits_from_growth_end_leaves_the_plain_models_anchors(tmp_path):
-    """With --bits-from growth-end the bits are projected only once the density strategy has fixed the
-    anchors: a container of an object and bits keeps the anchor positions that plain Scaffold-GS of
-    its seed grew, float for float, and still reads its message; projected from the start, the
-    bits move the features during growth and the anchors grown differ."""
+    """By default (--bits-from growth-end) the bits are projected only once the density strategy has
+    fixed the anchors: a container of an object and bits keeps the anchor positions that plain
+    Scaffold-GS of its seed grew, float for float, and still reads its whole message."""
     small = ["--width", "32", "--height", "24", "--train-views", "4", "--test-views", "1", "--iterations", "60",
              "--quiet", "--seed", "3", "--device", "cpu"]
     with pytest.raises(ValueError, match="bits_from must be one of start, growth-end"):
         SecureConfig(bits_from="middle")
     assert main(["train", "--out", str(tmp_path / "plain"), *small]) == 0
-    runs = {"late": ["--bits-from", "growth-end"], "start": []}
-    for name, extra in runs.items():
-        assert main(["hide", "--out", str(tmp_path / name), "--hide", "mug", "--payload", "object+bits:16",
-                     *small, *extra]) == 0
-    xyz = {name: open_container(tmp_path / name / "public")[0].anchors.xyz for name in runs}
-    plain = open_container(tmp_path / "plain" / "model")[0].anchors.xyz
-    assert torch.equal(xyz["late"], plain)
-    assert xyz["start"].shape != plain.shape or not torch.equal(xyz["start"], plain)
-    metrics = json.loads((tmp_path / "late" / "metrics.json").read_text())
-    assert metrics["bit_accuracy"] == 1.0
+    assert main(["hide", "--out", str(tmp_path / "hide"), "--hide", "mug", "--payload", "object+bits:16", *small]) == 0
+    xyz = open_container(tmp_path / "hide" / "public")[0].anchors.xyz
+    assert torch.equal(xyz, open_container(tmp_path / "plain" / "model")[0].anchors.xyz)
+    assert json.loads((tmp_path / "hide" / "metrics.json").read_text())["bit_accuracy"] == 1.0
+
+
+def test_the_bits_are_projected_from_the_step_bits_from_names(hidden_scene):
+    """bits_from "start": every feature agrees with its bit by the margin after every step;
+    "growth-end": not before the density strategy's last step (update_until), after every step from
+    then on; a run that does not densify projects from the first step either way."""
+    config = TrainConfig(iterations=8, raster=CPU_RASTER)
+    trainers = {mode: SecureTrainer(hidden_scene, config, SecureConfig(payload="object+bits:16", bits_from=mode))
+                for mode in ("start", "growth-end")}
+    late = trainers["growth-end"]
+    assert trainers["start"].bits_start == 0 and late.bits_start == late.strategy.update_until >= 2
+    still = SecureTrainer(hidden_scene, dataclasses.replace(config, densify=False), SecureConfig(payload="bits:16"))
+    assert still.bits_start == 0
+
+    def agrees(trainer) -> bool:
+        anchors, bits = trainer.model.anchors, trainer.model.private.bits
+        feat = anchors.feat.detach()
+        return torch.allclose(bits.project(feat, anchors.xyz, trainer.secure.bit_margin), feat, atol=1e-5)
+
+    for step in range(1, config.iterations + 1):
+        for trainer in trainers.values():
+            trainer.step()
+        assert agrees(trainers["start"]) and agrees(late) == (step > late.bits_start), step
 
 
 def test_feature_grad_until_frees_the_public_features(hidden_scene):

@@ -98,9 +98,9 @@ SECURE_FLAGS = (
     ("--bit-margin", "secure.bit_margin", "logit margin by which every anchor's vote must agree with its bit (the "
                                           "bits live in the public anchor features: higher costs the cover; None: "
                                           "0.25 with the automatic robust training, 1 otherwise)"),
-    ("--bits-from", "secure.bits_from", "when the bits are projected into the anchor features: start (after "
-                                         "every step) or growth-end (once the density strategy has fixed the "
-                                         "anchors, which are then plain Scaffold-GS's of the seed)"),
+    ("--bits-from", "secure.bits_from", "when the bits are projected into the anchor features: growth-end "
+                                         "(once the density strategy has fixed the anchors, which are then "
+                                         "plain Scaffold-GS's of the seed) or start (after every step)"),
     ("--bit-cell", "secure.bit_cell_voxels", "edge of the keyed grid cells that deal anchors among the bits, in "
                                              "voxels (larger: bits survive larger position changes; smaller: more "
                                              "independent voters per bit)"),

@@ -102,6 +102,9 @@ class SecureTrainer(ScaffoldTrainer):
         strategy.use_bbox = (all(p.spec.kind != "scene" for p in self.payloads)
                              and any(p.spec.kind in ("object", "image") for p in self.payloads))
         self.strategy = strategy  # the private heads, built with the model, read its mode
+        # The last step before the bit projection begins (SecureConfig.bits_from): growth ends at
+        # update_until, and a run that does not densify never grows.
+        self.bits_start = strategy.update_until if secure.bits_from == "growth-end" and config.densify else 0
         # Each bit decoder's BitProjection of the anchor positions after_update last refitted to.
         self._projections = Kept()
         # Each secret's crops (view index -> Crop or None), kept while its box is unchanged.
@@ -404,7 +407,7 @@ class SecureTrainer(ScaffoldTrainer):
 
         projections = self._projections.get((anchors.xyz, *(private.bits for private in self.model.secrets)), refit)
         decoders = [private.bits for private in self.model.secrets if private.bits is not None]
-        if not decoders or (self.secure.bits_from == "growth-end" and step <= self.strategy.update_until):
+        if not decoders or step <= self.bits_start:
             return
         feat = anchors.feat.detach()
         for _ in range(PROJECTION_ROUNDS if len(decoders) > 1 else 1):
