@@ -268,8 +268,8 @@ class SecureConfig:
         (``margin``).
     bits_from: when the bit projection (bit_margin) begins: "growth-end" (the default), after every
         step once the density strategy has made its last change to the anchor set (``update_until``;
-        from the first step when nothing densifies); "start", after every step of the run (the
-        default before 2026-11-29, which runs recorded without this field keep: RECORDED_BEFORE).
+        from the first step when nothing densifies); "start", after every step of the run (what runs
+        recorded before this field existed did, and keep: RECORDED_BEFORE).
         Until growth ends the release trains as plain Scaffold-GS of its seed does, so its anchors
         (grown and pruned by that training) are the plain model's, and the anchor cloud says
         nothing of the bits (nor, with the private codes, of the hidden object); the public heads
