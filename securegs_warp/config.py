@@ -386,11 +386,13 @@ class SecureConfig:
         """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):
         ``strategy.mode`` when given, else "cover" when one of them is an object (the paper's RDO grows
         anchors on the hidden surface, so the public anchor cloud draws the object: docs/results.md,
-        "Geometric security") and "rdo" for images, scenes and bits, which have no surface of their
-        own to keep out of the cloud."""
+        "Geometric security") or when all are bits (no hidden render gives RDO a gradient, and its
+        empty Γ_hid growth still draws from the growth generator, so the anchors would drift from
+        plain Scaffold-GS's of the seed), and "rdo" for images and scenes, which have no surface of
+        their own to keep out of the cloud."""
         if self.strategy.mode is not None:
             return self.strategy.mode
-        return "cover" if "object" in kinds else "rdo"
+        return "cover" if "object" in kinds or all(kind == "bits" for kind in kinds) else "rdo"
 
     def robust_spec(self, kinds, mode: str) -> str | None:
         """The attacks a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each) in density

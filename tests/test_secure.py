@@ -79,11 +79,12 @@ def test_object_payload_needs_hidden_views():
         SecureTrainer(scene, TrainConfig(iterations=5, raster=CPU_RASTER), SecureConfig(payload="object"))
 
 
-def test_density_mode_defaults_to_cover_for_an_object_and_rdo_otherwise(hidden_scene):
+def test_density_mode_defaults_to_cover_for_an_object_or_bits_alone_and_rdo_otherwise(hidden_scene):
     config = TrainConfig(iterations=2, raster=CPU_RASTER)
     modes = {payload: SecureTrainer(hidden_scene, config, SecureConfig(payload=payload)).strategy.mode
-             for payload in ("object+bits:48", "image", "bits:16", "image,object")}
-    assert modes == {"object+bits:48": "cover", "image": "rdo", "bits:16": "rdo", "image,object": "cover"}
+             for payload in ("object+bits:48", "image", "bits:16", "bits:16,bits:8", "image,bits:8", "image,object")}
+    assert modes == {"object+bits:48": "cover", "image": "rdo", "bits:16": "cover", "bits:16,bits:8": "cover",
+                     "image,bits:8": "rdo", "image,object": "cover"}
     assert SecureTrainer(hidden_scene, config, SecureConfig(payload="object", strategy=RDO)).strategy.mode == "rdo"
     with pytest.raises(ValueError, match="density mode must be one of"):
         RegionAwareStrategy(mode="paper")

@@ -51,8 +51,9 @@ SECURE_FLAGS = (
                                        "OBJ exporters and scans)"),
     ("--mode", "secure.strategy.mode", "density strategy: cover (the cover's own anchors decode the hidden "
                                        "object: no anchor grows for it; the default when a secret hides an "
-                                       "object, for every secret of the run), rdo (the paper's; the default "
-                                       "for images, scenes and bits), or the ablations scaffold, global, shared"),
+                                       "object, for every secret of the run, and for bits alone), rdo (the "
+                                       "paper's; the default for images and scenes), or the ablations "
+                                       "scaffold, global, shared"),
     ("--hidden-frame", "secure.hidden_frame", "where the private heads place hidden Gaussians: anchor (near their "
                                               "anchor, the paper's) or box (anywhere in the object's box); default "
                                               "box for an object in the cover mode, anchor otherwise"),
