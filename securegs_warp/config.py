@@ -383,7 +383,8 @@ class SecureConfig:
     hidden_capture: bool = True
 
     def strategy_mode(self, kinds) -> str:
-        """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each):
+        """The density mode of a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each; None
+        for bits alone):
         ``strategy.mode`` when given, else "cover" when one of them is an object (the paper's RDO grows
         anchors on the hidden surface, so the public anchor cloud draws the object: docs/results.md,
         "Geometric security") or when all are bits (no hidden render gives RDO a gradient, and its
@@ -392,7 +393,7 @@ class SecureConfig:
         their own to keep out of the cloud."""
         if self.strategy.mode is not None:
             return self.strategy.mode
-        return "cover" if "object" in kinds or all(kind == "bits" for kind in kinds) else "rdo"
+        return "cover" if "object" in kinds or all(kind is None for kind in kinds) else "rdo"
 
     def robust_spec(self, kinds, mode: str) -> str | None:
         """The attacks a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each) in density
