@@ -69,8 +69,11 @@ def main():
     write(out / "rows.json", json.dumps(rows, indent=1))
     write(out / "summary.json", json.dumps(result, indent=1))
     write(out / "table.md", table(result))
-    plot_histogram(args.plot or out / "histogram.png", rows, args.bits)
     print(table(result))
+    try:
+        plot_histogram(args.plot or out / "histogram.png", rows, args.bits)
+    except ImportError:
+        print("no histogram: matplotlib is not installed (pip install -e \".[plots]\")")
 
 
 def table(result: dict) -> str:
