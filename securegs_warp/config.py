@@ -396,13 +396,14 @@ class SecureConfig:
         return "cover" if "object" in kinds or all(kind is None for kind in kinds) else "rdo"
 
     def robust_spec(self, kinds, mode: str) -> str | None:
-        """The attacks a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each) in density
-        ``mode`` (``strategy_mode``) trains against: ``robust``, with "auto" resolved. The recipe is
-        measured on an object (and its bits) in the cover mode only; an image or scene decodes from
-        the visible anchors, where dropout changes the rows every step."""
+        """The attacks a run whose secrets hide ``kinds`` (``PayloadSpec.kind`` of each; None for
+        bits alone) in density ``mode`` (``strategy_mode``) trains against: ``robust``, with "auto"
+        resolved. The recipe is measured on an object (and its bits) in the cover mode only, and
+        applies to a run whose other secrets are bits alone; an image or scene decodes from the
+        visible anchors, where dropout changes the rows every step."""
         if self.robust != "auto":
             return self.robust
-        measured = mode == "cover" and "object" in kinds and all(kind in ("object", "bits") for kind in kinds)
+        measured = mode == "cover" and "object" in kinds and all(kind in ("object", None) for kind in kinds)
         return ROBUST_RECIPE if measured else None
 
     def finish_robust_spec(self, kinds, mode: str) -> str | None:

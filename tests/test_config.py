@@ -122,17 +122,17 @@ def test_robust_training_is_on_by_default_only_for_an_object_in_the_cover_mode()
     from securegs_warp.config import BIT_MARGIN, FINISH_FRACTION, ROBUST_BIT_MARGIN, ROBUST_RECIPE
 
     secure = SecureConfig()
-    assert secure.robust_spec(["object", "bits"], "cover") == ROBUST_RECIPE
-    assert secure.margin(["object", "bits"], "cover") == ROBUST_BIT_MARGIN
+    assert secure.robust_spec(["object", None], "cover") == ROBUST_RECIPE
+    assert secure.margin(["object", None], "cover") == ROBUST_BIT_MARGIN
     # not where it was not measured: the RDO mode, or an image decoded from the visible anchors
-    for kinds, mode in ((["object"], "rdo"), (["image"], "rdo"), (["image", "object"], "cover"), (["bits"], "rdo")):
+    for kinds, mode in ((["object"], "rdo"), (["image"], "rdo"), (["image", "object"], "cover"), ([None], "rdo")):
         assert secure.robust_spec(kinds, mode) is None and secure.margin(kinds, mode) == BIT_MARGIN
     off = apply_overrides(secure, {"robust": "none"})
     assert off.robust is None and off.resolved(["object"], "cover") == apply_overrides(
         off, {"bit_margin": "1", "hidden_finish": str(FINISH_FRACTION), "finish_robust": "none"})
     # an explicit recipe keeps the margin the run asked for, or the plain default
     given = apply_overrides(secure, {"robust": "noise-feat:0.2"})
-    assert given.robust_spec(["bits"], "rdo") == "noise-feat:0.2" and given.margin(["bits"], "rdo") == BIT_MARGIN
+    assert given.robust_spec([None], "rdo") == "noise-feat:0.2" and given.margin([None], "rdo") == BIT_MARGIN
     assert apply_overrides(given, {"bit_margin": "2"}).margin(["object"], "cover") == 2.0
     with pytest.raises(ValueError, match="robust"):
         apply_overrides(secure, {"robust": "noise-offset:0.1"})

@@ -716,8 +716,8 @@ def test_the_finishing_phase_trains_against_its_own_attacks(hidden_scene, monkey
     from securegs_warp.config import ROBUST_RECIPE
 
     auto = SecureConfig()
-    assert auto.finish_robust_spec(["object", "bits"], "cover") == FINISH_ROBUST_RECIPE
-    assert auto.robust_spec(["object", "bits"], "cover") == ROBUST_RECIPE
+    assert auto.finish_robust_spec(["object", None], "cover") == FINISH_ROBUST_RECIPE
+    assert auto.robust_spec(["object", None], "cover") == ROBUST_RECIPE
     assert auto.finish_robust_spec(["image"], "rdo") is None
     assert apply_overrides(auto, {"robust": "noise-feat:0.2"}).finish_robust_spec(["object"], "cover") == "noise-feat:0.2"
     assert apply_overrides(auto, {"robust": "none"}).finish_robust_spec(["object"], "cover") is None
