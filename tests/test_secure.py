@@ -512,6 +512,12 @@ def test_by_default_the_codes_carry_the_hidden_object_and_its_loss_moves_nothing
     assert codes.table.grad.abs().sum() > 0 and trainer.model.private.offset_mlp[0].weight.grad.abs().sum() > 0
 
 
+# A run small enough to train twice in a test, with growth (on the CPU: CUDA's atomics sum in no
+# fixed order, so there two runs of one seed differ).
+SMALL_RUN = ["--width", "32", "--height", "24", "--train-views", "4", "--test-views", "1", "--iterations", "60",
+             "--quiet", "--seed", "3", "--device", "cpu"]
+
+
 def test_by_default_an_objects_release_is_the_plain_scaffold_gs_model_of_its_seed(tmp_path):
     """With the private codes (the default for an object) no hidden gradient reaches the release, and
     robust training draws from a stream of its own: a container hiding an object (no bits) publishes
@@ -519,14 +525,11 @@ def test_by_default_an_objects_release_is_the_plain_scaffold_gs_model_of_its_see
     included, and the same MLP weights (the MLP files differ in torch's per-save serialization id
     alone), whichever object it hides and where; without the codes (a share of the hidden gradient on
     the public features) the point cloud differs."""
-    # On the CPU: CUDA's atomics sum in no fixed order, so there two plain runs of one seed differ.
-    small = ["--width", "32", "--height", "24", "--train-views", "4", "--test-views", "1", "--iterations", "60",
-             "--quiet", "--seed", "3", "--device", "cpu"]
-    assert main(["train", "--out", str(tmp_path / "plain"), *small]) == 0
+    assert main(["train", "--out", str(tmp_path / "plain"), *SMALL_RUN]) == 0
     runs = {"mug": ["--hide", "mug"], "pawn": ["--hide", "pawn", "--placement", "sink"],
             "pawn_nocodes": ["--hide", "pawn", "--placement", "sink", "--hidden-codes", "0"]}
     for name, extra in runs.items():
-        assert main(["hide", "--out", str(tmp_path / name), "--payload", "object", *small, *extra]) == 0
+        assert main(["hide", "--out", str(tmp_path / name), "--payload", "object", *SMALL_RUN, *extra]) == 0
     releases = {"plain": tmp_path / "plain" / "model", **{name: tmp_path / name / "public" for name in runs}}
     cloud = {name: (folder / "point_cloud.ply").read_bytes() for name, folder in releases.items()}
     assert cloud["plain"] == cloud["mug"] == cloud["pawn"] != cloud["pawn_nocodes"]
@@ -541,12 +544,10 @@ def test_bits_from_growth_end_leaves_the_plain_models_anchors(tmp_path):
     """By default (--bits-from growth-end) the bits are projected only once the density strategy has
     fixed the anchors: a container of an object and bits keeps the anchor positions that plain
     Scaffold-GS of its seed grew, float for float, and still reads its whole message."""
-    small = ["--width", "32", "--height", "24", "--train-views", "4", "--test-views", "1", "--iterations", "60",
-             "--quiet", "--seed", "3", "--device", "cpu"]
     with pytest.raises(ValueError, match="bits_from must be one of start, growth-end"):
         SecureConfig(bits_from="middle")
-    assert main(["train", "--out", str(tmp_path / "plain"), *small]) == 0
-    assert main(["hide", "--out", str(tmp_path / "hide"), "--hide", "mug", "--payload", "object+bits:16", *small]) == 0
+    assert main(["train", "--out", str(tmp_path / "plain"), *SMALL_RUN]) == 0
+    assert main(["hide", "--out", str(tmp_path / "hide"), "--hide", "mug", "--payload", "object+bits:16", *SMALL_RUN]) == 0
     xyz = open_container(tmp_path / "hide" / "public")[0].anchors.xyz
     assert torch.equal(xyz, open_container(tmp_path / "plain" / "model")[0].anchors.xyz)
     assert json.loads((tmp_path / "hide" / "metrics.json").read_text())["bit_accuracy"] == 1.0
