@@ -133,6 +133,36 @@ def test_marked_features_are_present_and_unmarked_ones_are_fair_coins():
     assert not verify_message(KeyedBitDecoder(32, MESSAGE, new_seed(), CELL), marked(decoder, feat, xyz), xyz).present
 
 
+
+def test_a_minority_of_moved_anchors_does_not_outvote_the_written_ones():
+    """Anchors written just past a small margin (0.25, the robust default) and 45% of them moved
+    into cells they were not written for: there they read directions they were never written for,
+    with long features, so their logits are large and random in sign. The majority of signs still
+    reads every bit; a mean of sigmoids, which those logits dominate, does not."""
+    feat, xyz = anchors(n=4000)
+    decoder = KeyedBitDecoder(32, MESSAGE, "5e" * SEED_BYTES, CELL)  # a fixed key: the contrast is exact
+    mark = marked(decoder, feat, xyz, margin=0.025)  # logits about 0.25
+    moved = torch.rand(len(xyz), generator=torch.Generator().manual_seed(2)) < 0.45
+    xyz_after = torch.where(moved[:, None], xyz + 7.5 * CELL, xyz)
+    result = verify_message(decoder, mark, xyz_after)
+    assert result.matched == 48
+    logits, bit = decoder(mark, xyz_after)
+    sigmoid_mean = torch.zeros(48).index_add_(0, bit, torch.sigmoid(logits)) / torch.bincount(bit, minlength=48)
+    target = decoder.target
+    assert int(((sigmoid_mean > 0.5).long() == target).sum()) < 48
+    # (the moved anchors' logits are an order larger than the written ones')
+    assert float(logits[moved].abs().median()) > 5 * float(logits[~moved].abs().median())
+
+
+def test_blank_features_decide_no_bit():
+    """Zero logits count half a vote each way, so a release of blank features leaves every bit
+    undecided (none agrees), whatever the message's share of 0 bits."""
+    _, xyz = anchors()
+    decoder = KeyedBitDecoder(32, "0" * 48, new_seed(), CELL)
+    vote, counts = decoder.vote(torch.zeros(len(xyz), 32), xyz)
+    assert bool((counts > 0).all()) and bool((vote == 0.5).all())
+    assert verify_message(decoder, torch.zeros(len(xyz), 32), xyz).matched == 0
+
 def test_bits_without_voters_count_against_the_release():
     feat, xyz = anchors(n=10)
     decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)

@@ -155,9 +155,24 @@ class KeyedBitDecoder(nn.Module):
 
     @torch.no_grad()
     def vote(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(each bit's mean vote [L] in [0, 1]: the mean sigmoid of its voters' logits, 0.5 when
-        no anchor votes on it; each bit's number of voters [L] int64)."""
+        """(each bit's vote [L] in [0, 1]: the fraction of its voters whose logit is positive, a zero
+        logit counting half, 0.5 when no anchor votes on it; each bit's number of voters [L] int64).
+        Where the voters split evenly, the sign of their summed logits decides: the vote is then
+        0.5 ± 1/(4·voters), between the tie and the nearest fraction, and stays 0.5 only where that
+        sum is 0 too.
+
+        A majority of signs, not a mean of sigmoids: a written anchor's logit sits just past the
+        margin (sigmoid(0.25) = 0.56), while an anchor that an attack moved into another cell reads a
+        direction it was never written for, where its logit is as large as the feature is long and
+        random in sign. Its sigmoid is then near 0 or 1 and outweighs several written voters;
+        its sign weighs as much as any one of them. A zero logit (blank features) counts half, so
+        flipping w_b still flips bit b's vote exactly (``verification.py``), ties included, so on
+        an unmarked model each decided bit stays a fair coin."""
         logits, bit = self(feat, xyz)
         counts = torch.bincount(bit, minlength=self.n_bits)
-        total = torch.zeros(self.n_bits, device=feat.device).index_add_(0, bit, torch.sigmoid(logits))
-        return torch.where(counts > 0, total / counts.clamp_min(1), torch.full_like(total, 0.5)), counts
+        positive = torch.zeros(self.n_bits, device=feat.device).index_add_(0, bit, 0.5 * (torch.sign(logits) + 1.0))
+        summed = torch.zeros(self.n_bits, device=feat.device).index_add_(0, bit, logits)
+        fraction = positive / counts.clamp_min(1)
+        tie_break = 0.5 + torch.sign(summed) / (4 * counts.clamp_min(1))
+        vote = torch.where(fraction == 0.5, tie_break, fraction)
+        return torch.where(counts > 0, vote, torch.full_like(vote, 0.5)), counts
