@@ -279,6 +279,10 @@ class SecureConfig:
         the bits (the key stores the edge in scene units): an anchor keeps its bit while its position
         moves by less than its distance to a cell face, so a coarser grid survives larger position
         changes (quantisation, float16, noise) and a finer one gives each bit more independent voters.
+        16: 8-bit quantisation of a scene's positions moves them by up to an eighth of a 16-voxel cell,
+        by half of a 4-voxel one; a message of L bits needs well over L occupied cells (about
+        L·exp(−cells/L) bits go without a voter), and a demo-sized model occupies thousands
+        (docs/results.md, "The bits read by a majority of signs, and a coarser grid").
     hdger: the paper's hybrid decoupled Gaussian encryption: hidden offsets come from the private
         MLP F_o†; False ("w/o HDGER", an ablation) stores explicit hidden offsets per anchor, which
         cannot be released.
@@ -362,7 +366,7 @@ class SecureConfig:
     robust: str | None = "auto"
     bit_margin: float | None = None
     bits_from: str = "growth-end"
-    bit_cell_voxels: float = 4.0
+    bit_cell_voxels: float = 16.0
     hdger: bool = True
     strategy: RegionAwareStrategy = dataclasses.field(default_factory=RegionAwareStrategy)
     hidden_frame: str | None = None

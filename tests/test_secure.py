@@ -2,6 +2,7 @@
 import collections
 import dataclasses
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -33,9 +34,11 @@ def hidden_scene():
 
 @pytest.fixture(scope="module")
 def trained(hidden_scene):
-    """A container hiding the mug and 48 bits, trained briefly with frequent RDO updates."""
+    """A container hiding the mug and 48 bits, trained briefly with frequent RDO updates. Its 600
+    points occupy too few cells of the default 16-voxel bit grid for 48 bits
+    (test_a_message_longer_than_the_grid_carries_is_warned_of): a 4-voxel grid gives every bit voters."""
     trainer = SecureTrainer(hidden_scene, TrainConfig(iterations=60, raster=CPU_RASTER),
-                            SecureConfig(payload="object+bits:48", strategy=RDO))
+                            SecureConfig(payload="object+bits:48", strategy=RDO, bit_cell_voxels=4.0))
     s = trainer.strategy
     s.start_stat, s.update_from, s.update_interval, s.update_until = 0, 0, 10, 60
     s.dbscan_min_samples = 4
@@ -299,6 +302,20 @@ def test_bit_lengths_1_and_256(length):
         trainer.step()
     metrics = trainer.evaluate_hidden()
     assert metrics["bit_accuracy"] == 1.0 and metrics["bits_without_voters"] == 0
+
+
+def test_a_message_longer_than_the_grid_carries_is_warned_of():
+    """Each occupied cell of the keyed grid carries one bit: 256 bits over a 600-point scene's cells
+    leave bits without voters, and the run says so when the projection begins, naming the option."""
+    scene = make_synthetic_scene(width=40, height=30, n_train=4, n_test=1, n_points=600)
+    trainer = SecureTrainer(scene, TrainConfig(iterations=2, raster=CPU_RASTER, densify=False),
+                            SecureConfig(payload="bits:256"))
+    with pytest.warns(UserWarning, match=r"of the message's 256 bits fall in no occupied cell.*--bit-cell"):
+        trainer.step()
+    assert trainer.evaluate_hidden()["bits_without_voters"] > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        trainer.step()  # said once, when the projection begins
 
 
 def test_bits_are_read_from_the_anchor_features(hidden_scene):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -63,6 +64,18 @@ def hidden_seed(seed: int) -> int:
 def secret_suffix(secret: int) -> str:
     """What a metric of secret ``secret`` (0-based) is suffixed with: nothing for the first, _2, _3 ..."""
     return "" if secret == 0 else f"_{secret + 1}"
+
+
+def warn_of_bits_without_voters(decoder, xyz: torch.Tensor, cell_voxels: float) -> None:
+    """A warning naming the bits of ``decoder``'s message that no anchor at positions xyz [N, 3]
+    carries: each occupied cell of the keyed grid carries one bit, so a model occupying few cells
+    for its message's length leaves some bits without voters, and those read 0."""
+    bits = decoder.anchor_bits(xyz)
+    vacant = int((torch.bincount(bits, minlength=decoder.n_bits) == 0).sum())
+    if vacant:
+        warnings.warn(f"{vacant} of the message's {decoder.n_bits} bits fall in no occupied cell of the keyed grid "
+                      f"({cell_voxels:g} voxels a cell; the {len(xyz)} anchors occupy too few cells): they will read "
+                      f"0. A shorter message or a finer grid (--bit-cell) gives every bit voters.", stacklevel=2)
 
 
 class SecureTrainer(ScaffoldTrainer):
@@ -409,6 +422,9 @@ class SecureTrainer(ScaffoldTrainer):
         decoders = [private.bits for private in self.model.secrets if private.bits is not None]
         if not decoders or step <= self.bits_start:
             return
+        if step == self.bits_start + 1:
+            for decoder in decoders:
+                warn_of_bits_without_voters(decoder, anchors.xyz, self.secure.bit_cell_voxels)
         feat = anchors.feat.detach()
         for _ in range(PROJECTION_ROUNDS if len(decoders) > 1 else 1):
             for decoder, projection in zip(decoders, projections):
