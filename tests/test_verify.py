@@ -133,12 +133,11 @@ def test_marked_features_are_present_and_unmarked_ones_are_fair_coins():
     assert not verify_message(KeyedBitDecoder(32, MESSAGE, new_seed(), CELL), marked(decoder, feat, xyz), xyz).present
 
 
-
 def test_a_minority_of_moved_anchors_does_not_outvote_the_written_ones():
     """Anchors written just past a small margin (0.25, the robust default) and 45% of them moved
     into cells they were not written for: there they read directions they were never written for,
-    with long features, so their logits are large and random in sign. The majority of signs still
-    reads every bit; a mean of sigmoids, which those logits dominate, does not."""
+    with logits an order larger than the written ones' and random in sign. The majority of signs
+    still reads every bit; a mean of sigmoids, which those logits dominate, does not."""
     feat, xyz = anchors(n=4000)
     decoder = KeyedBitDecoder(32, MESSAGE, "5e" * SEED_BYTES, CELL)  # a fixed key: the contrast is exact
     mark = marked(decoder, feat, xyz, margin=0.025)  # logits about 0.25
@@ -162,6 +161,25 @@ def test_blank_features_decide_no_bit():
     vote, counts = decoder.vote(torch.zeros(len(xyz), 32), xyz)
     assert bool((counts > 0).all()) and bool((vote == 0.5).all())
     assert verify_message(decoder, torch.zeros(len(xyz), 32), xyz).matched == 0
+
+
+def test_flipping_the_features_flips_every_vote_ties_included():
+    """Negated features read as the same features under negated directions w_b: every bit's vote
+    becomes 1 − vote exactly, also where its voters split evenly (the summed logits decide those),
+    which is what keeps each decided bit of an unmarked model a fair coin."""
+    feat, xyz = anchors(n=150)  # about 3 voters a bit: even splits are common
+    decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
+    logits, bit = decoder(feat, xyz)
+    positive = torch.zeros(48).index_add_(0, bit, (logits > 0).float())
+    counts = torch.bincount(bit, minlength=48)
+    assert bool(((positive * 2 == counts) & (counts > 0)).any())  # some bits tie on signs
+    vote, _ = decoder.vote(feat, xyz)
+    flipped, _ = decoder.vote(-feat, xyz)
+    voted = counts > 0
+    assert torch.allclose(flipped[voted], 1 - vote[voted], atol=1e-6)
+    assert bool((vote[voted] != 0.5).all())  # every tie broken
+    assert torch.equal(flipped[voted] > 0.5, vote[voted] < 0.5)  # every decision flips
+
 
 def test_bits_without_voters_count_against_the_release():
     feat, xyz = anchors(n=10)

@@ -401,7 +401,7 @@ class PrivateHeads(nn.Module):
     @torch.no_grad()
     def decode_bits(self, feat: torch.Tensor, xyz: torch.Tensor) -> torch.Tensor:
         """The message [L] (0/1 ints): each anchor votes on its bit with its logit's sign, the
-        majority decides (a tie, or a bit no anchor votes on, reads 0)."""
+        majority decides (``KeyedBitDecoder.vote``; a bit no anchor votes on reads 0)."""
         return (self.bits.vote(feat, xyz)[0] > 0.5).to(torch.int64)
 
     def named_mlps(self) -> dict[str, nn.Module]:

@@ -27,7 +27,7 @@ from ..train.trainer import ScaffoldTrainer
 from . import hidden_graph
 from .crop import Crop, box_crop
 from .heads import PrivateHeads
-from .keyed_bits import new_seed
+from .keyed_bits import KeyedBitDecoder, new_seed
 from .model import SecureModel
 from .payload import Payload, build_payload, message_string, parse_secrets, recorded_payload
 from .robust import parse_robust, perturb, public_opacity
@@ -66,10 +66,10 @@ def secret_suffix(secret: int) -> str:
     return "" if secret == 0 else f"_{secret + 1}"
 
 
-def warn_of_bits_without_voters(decoder, xyz: torch.Tensor, cell_voxels: float) -> None:
-    """A warning naming the bits of ``decoder``'s message that no anchor at positions xyz [N, 3]
-    carries: each occupied cell of the keyed grid carries one bit, so a model occupying few cells
-    for its message's length leaves some bits without voters, and those read 0."""
+def warn_of_bits_without_voters(decoder: KeyedBitDecoder, xyz: torch.Tensor, cell_voxels: float) -> None:
+    """Warn, with their number, when some bits of ``decoder``'s message have no anchor among those
+    at positions xyz [N, 3]: each occupied cell of the keyed grid carries one bit, so a model
+    occupying few cells for its message's length leaves bits without voters, and those read 0."""
     bits = decoder.anchor_bits(xyz)
     vacant = int((torch.bincount(bits, minlength=decoder.n_bits) == 0).sum())
     if vacant:
