@@ -68,6 +68,17 @@ def test_random_bits_are_not_derived_from_the_recorded_seed(tmp_path):
     assert len(messages) == 2
 
 
+def test_a_warning_of_the_package_is_one_line(tmp_path, capsys):
+    """A person at a terminal reads the package's own warnings as ``warning: ...``, without Python's
+    file and source line: here, bits that no anchor carries in a grid far too coarse for 256 bits."""
+    assert main(["hide", "--out", str(tmp_path / "r"), "--payload", "bits:256", "--bit-cell", "64",
+                 "--iterations", "2", "--quiet", *TINY]) == 0
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if "no occupied cell" in line]
+    assert len(lines) == 1 and lines[0].startswith("warning: ") and "--bit-cell" in lines[0]
+    assert "UserWarning" not in err and "trainer.py" not in err
+
+
 def test_a_literal_message_resumes_by_its_length_and_refuses_another(tmp_path, capsys):
     # config.json and the checkpoint record a literal message by its length: resuming takes either
     # the length or the same literal; another literal would silently change the secret, and is refused.

@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
+from pathlib import Path
 
 from ..keys import KeyFileError
 from . import attack, audit, secure, train, verify
@@ -30,11 +32,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_PACKAGE = Path(__file__).resolve().parents[1]
+
+
+def _print_warning(message, category, filename, lineno, file=None, line=None, show=warnings.showwarning):
+    """This package's own warnings as one line for a person at a terminal (``warning: ...``); any
+    other library's keep Python's form, which names where they come from."""
+    if issubclass(category, UserWarning) and Path(filename).resolve().is_relative_to(_PACKAGE):
+        print(f"warning: {message}", file=sys.stderr if file is None else file)
+    else:
+        show(message, category, filename, lineno, file, line)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     t0 = time.perf_counter()
     try:
-        code = args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _print_warning
+            code = args.func(args)
     except (ValueError, FileNotFoundError, KeyFileError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
