@@ -49,7 +49,8 @@ from securegs_warp.secure.steganalysis import auc_by_model
 DEFAULT = "default"
 SCRIPTS = Path(__file__).resolve().parent
 # What a row reports of each attack in the sweep (the others stay in the case's robustness.md).
-REPORTED = ("prune-random:0.2", "prune-random:0.3", "noise-feat:0.1", "purify:0.2", "quantize:12", "quantize:10")
+REPORTED = ("prune-random:0.2", "prune-random:0.3", "noise-feat:0.1", "purify:0.2", "quantize:12", "quantize:10",
+            "quantize:8", "quantize:6", "noise-xyz:0.005", "noise-xyz:0.01")
 
 
 def parse_case(text: str) -> dict:
