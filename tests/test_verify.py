@@ -186,6 +186,8 @@ def test_bits_without_voters_count_against_the_release():
     decoder = KeyedBitDecoder(32, MESSAGE, new_seed(), CELL)
     result = verify_message(decoder, marked(decoder, feat, xyz), xyz)
     assert result.matched <= 10 and not result.present
+    assert result.bits_without_voters >= 48 - 10 and result.matched + result.bits_without_voters <= 48
+    assert verify_message(decoder, *anchors()).bits_without_voters == 0  # 2000 anchors: every bit has voters
 
 
 @pytest.fixture(scope="module")
@@ -212,6 +214,17 @@ def test_verify_container_and_plain_model(runs, capsys):
     assert plain["present"] is False and plain["p_value"] > 1e-6
     assert main(["verify", str(runs / "c" / "public"), "--key", str(key)]) == 0
     assert capsys.readouterr().out.startswith("present: 48/48 bits agree")
+    assert own["bits_without_voters"] == 0
+
+
+def test_verify_names_the_bits_a_cut_release_has_no_anchor_for(runs, capsys, tmp_path):
+    key = runs / "c" / "key.safetensors"
+    assert main(["attack", str(runs / "c" / "public"), "--key", str(key), "--attack", "prune-random:0.99",
+                 "--out", str(tmp_path / "cut"), "--device", "cpu"]) == 0
+    cut = verify_json(capsys, tmp_path / "cut", key)
+    assert cut["bits_without_voters"] > 0 and cut["matched"] + cut["bits_without_voters"] <= 48
+    assert main(["verify", str(tmp_path / "cut"), "--key", str(key)]) == 0
+    assert f"note: {cut['bits_without_voters']} of the 48 bits have no anchor in this release" in capsys.readouterr().out
 
 
 def test_bad_keys_get_one_line_errors(runs, capsys, monkeypatch, tmp_path):

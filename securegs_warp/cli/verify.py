@@ -24,6 +24,9 @@ def cmd_verify(args) -> int:
     print(f"{verdict}: {result.matched}/{result.bits} bits agree (bit accuracy {result.bit_accuracy:.3f}), "
           f"p-value {result.p_value:.3g} (alpha {result.alpha:g}); {result.anchor_agreement:.3f} of "
           f"{result.anchors} anchors vote with the message")
+    if result.bits_without_voters:
+        print(f"note: {result.bits_without_voters} of the {result.bits} bits have no anchor in this release, and count "
+              f"as disagreeing")
     if min_p_value(result.bits) > result.alpha:
         print(f"note: a {result.bits}-bit message cannot reach alpha {result.alpha:g} (its smallest p-value is "
               f"{min_p_value(result.bits):.3g}); hide more bits")

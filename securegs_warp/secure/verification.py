@@ -35,6 +35,8 @@ class Verification:
 
     present: p_value <= alpha. bit_accuracy: matched / bits. anchor_agreement: the fraction of the
     release's anchors whose own vote agrees with its bit of the message (about 0.5 when unmarked).
+    bits_without_voters: bits that no anchor of the release carries (each counts as a disagreement):
+    a release cut down to few anchors, or to few cells of the key's grid, leaves some.
     """
 
     present: bool
@@ -45,6 +47,7 @@ class Verification:
     alpha: float
     anchor_agreement: float
     anchors: int
+    bits_without_voters: int
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -77,4 +80,4 @@ def verify_message(decoder: KeyedBitDecoder, feat: torch.Tensor, xyz: torch.Tens
     p = binomial_tail(matched, decoder.n_bits)
     return Verification(present=p <= alpha, bit_accuracy=matched / decoder.n_bits, matched=matched,
                         bits=decoder.n_bits, p_value=p, alpha=alpha, anchor_agreement=agreement,
-                        anchors=int(feat.shape[0]))
+                        anchors=int(feat.shape[0]), bits_without_voters=int((counts == 0).sum()))
