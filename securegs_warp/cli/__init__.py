@@ -5,6 +5,7 @@ share: cli.common."""
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 import warnings
@@ -35,9 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
 _PACKAGE = Path(__file__).resolve().parents[1]
 
 
-def _print_warning(message, category, filename, lineno, file=None, line=None, show=warnings.showwarning):
+def _print_warning(show, message, category, filename, lineno, file=None, line=None):
     """This package's own warnings as one line for a person at a terminal (``warning: ...``); any
-    other library's keep Python's form, which names where they come from."""
+    other library's go to ``show``, the handler that was in place (Python's form names where they
+    come from)."""
     if issubclass(category, UserWarning) and Path(filename).resolve().is_relative_to(_PACKAGE):
         print(f"warning: {message}", file=sys.stderr if file is None else file)
     else:
@@ -49,7 +51,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     try:
         with warnings.catch_warnings():
-            warnings.showwarning = _print_warning
+            warnings.showwarning = functools.partial(_print_warning, warnings.showwarning)
             code = args.func(args)
     except (ValueError, FileNotFoundError, KeyFileError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -128,6 +128,12 @@ class KeyedBitDecoder(nn.Module):
             self._last_bits = (xyz.detach().clone(), bits)
         return bits
 
+    def bits_without_voters(self, xyz: torch.Tensor) -> int:
+        """How many bits of the message no anchor at positions xyz [N, 3] carries: each occupied cell
+        carries one bit, so a model occupying few cells for the message's length leaves some, and
+        each reads as undecided."""
+        return int((torch.bincount(self.anchor_bits(xyz), minlength=self.n_bits) == 0).sum())
+
     def forward(self, feat: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(logits [N], the bit each anchor votes on [N] int64) of anchors with features feat [N, d]
         at positions xyz [N, 3]."""

@@ -68,10 +68,8 @@ def secret_suffix(secret: int) -> str:
 
 def warn_of_bits_without_voters(decoder: KeyedBitDecoder, xyz: torch.Tensor, cell_voxels: float) -> None:
     """Warn, with their number, when some bits of ``decoder``'s message have no anchor among those
-    at positions xyz [N, 3]: each occupied cell of the keyed grid carries one bit, so a model
-    occupying few cells for its message's length leaves bits without voters, and those read 0."""
-    bits = decoder.anchor_bits(xyz)
-    vacant = int((torch.bincount(bits, minlength=decoder.n_bits) == 0).sum())
+    at positions xyz [N, 3] (``KeyedBitDecoder.bits_without_voters``): those read 0."""
+    vacant = decoder.bits_without_voters(xyz)
     if vacant:
         warnings.warn(f"{vacant} of the message's {decoder.n_bits} bits fall in no occupied cell of the keyed grid "
                       f"({cell_voxels:g} voxels a cell; the {len(xyz)} anchors occupy too few cells): they will read "
@@ -466,12 +464,10 @@ class SecureTrainer(ScaffoldTrainer):
             out["fps_hidden"] = evaluation.render_fps(lambda cam: self.render_hidden(cam, secret=secret), cams,
                                                       self.device)
         if p.bits is not None:
-            anchors = self.model.anchors
             out["bit_accuracy"] = self.bit_accuracy(secret=secret)
-            # One bit per anchor: a message longer than a model's anchors can carry reads 0 where no
-            # anchor votes.
-            votes = self.model.secrets[secret].bits.vote(anchors.feat, anchors.xyz)[1]
-            out["bits_without_voters"] = int((votes == 0).sum())
+            # One bit per occupied cell of the keyed grid: a message longer than a model's cells can
+            # carry reads 0 where no anchor votes.
+            out["bits_without_voters"] = self.model.secrets[secret].bits.bits_without_voters(self.model.anchors.xyz)
         return out
 
     @torch.no_grad()
