@@ -9,7 +9,9 @@ Pipeline (driven by ``securegs_warp.rasterizer``):
    tiles covered by its screen rectangle; with ``exact`` only the tiles of that rectangle that the
    Gaussian's ellipse at the alpha threshold reaches (``reaches_tile``, Speedy-Splat's AccuTile): a
    thin diagonal Gaussian touches a band of tiles, not its whole bounding square. The answers for a
-   rectangle of up to MASK_TILES tiles are kept as a bit mask, so step 4 does not test again.
+   rectangle of up to MASK_TILES tiles are kept as a bit mask, so step 4 does not test again; the
+   rectangle and the mask are its ``span``, 16 bytes, which step 4 gathers in depth order with one
+   random access where it gathered the centre, the radii and the mask with three.
    ``depth_ordered_counts`` then gathers the counts into depth order (int64: 3M Gaussians times
    dozens of tiles overflows int32).
 3. inclusive prefix sum of the counts in depth order (``wp.utils.array_scan``): its last entry is the
@@ -143,6 +145,25 @@ def masked(rect: wp.vec4i) -> bool:
     return (rect[2] - rect[0]) * (rect[3] - rect[1]) <= MASK_TILES
 
 
+# A span's rectangle holds each tile coordinate in 16 bits.
+MAX_TILES_PER_AXIS = 0xFFFF
+
+
+@wp.func
+def pack_rect(rect: wp.vec4i) -> wp.int64:
+    """A tile rectangle [x0, y0, x1, y1) (each coordinate at most MAX_TILES_PER_AXIS) as one int64."""
+    return (wp.int64(rect[0]) | (wp.int64(rect[1]) << wp.int64(16)) | (wp.int64(rect[2]) << wp.int64(32))
+            | (wp.int64(rect[3]) << wp.int64(48)))
+
+
+@wp.func
+def unpack_rect(word: wp.int64) -> wp.vec4i:
+    """The rectangle ``pack_rect`` packed."""
+    m = wp.int64(MAX_TILES_PER_AXIS)
+    return wp.vec4i(int(word & m), int((word >> wp.int64(16)) & m), int((word >> wp.int64(32)) & m),
+                    int((word >> wp.int64(48)) & m))
+
+
 @wp.kernel
 def depth_order_keys(depth_bits: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int32),
                      order: wp.array(dtype=wp.int32)):
@@ -164,15 +185,17 @@ def count_tiles(
     tiles_x: int,
     tiles_y: int,
     tile_counts: wp.array(dtype=wp.int32),
-    masks: wp.array(dtype=wp.int64),
+    spans: wp.array2d(dtype=wp.int64),
 ):
-    """tile_counts[i]: the tiles Gaussian i is binned to; with ``exact``, masks[i]: which tiles of
-    its rectangle (bit (ty − y0)·width + (tx − x0)) where ``masked`` keeps them, else 0."""
+    """tile_counts[i]: the tiles Gaussian i is binned to; where it has a radius, its span [N, 2]:
+    spans[i, 0] its tile rectangle (``pack_rect``), spans[i, 1] with ``exact`` which tiles of the
+    rectangle its ellipse reaches (bit (ty − y0)·width + (tx − x0)) where ``masked`` keeps them, else 0."""
     i = wp.tid()
     r = radii[i]
     n = int(0)
     if r[0] > 0 and r[1] > 0:
         rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
+        spans[i, 0] = pack_rect(rect)
         if exact != 0:
             op = opacities[i]
             keep = masked(rect)
@@ -187,7 +210,7 @@ def count_tiles(
                             if keep:
                                 mask = mask | (wp.int64(1) << wp.int64(b))
                         b += 1
-            masks[i] = mask
+            spans[i, 1] = mask
         else:
             n = (rect[2] - rect[0]) * (rect[3] - rect[1])
     tile_counts[i] = n
@@ -205,33 +228,31 @@ def depth_ordered_counts(order: wp.array(dtype=wp.int32), tile_counts: wp.array(
 def emit_intersections(
     order: wp.array(dtype=wp.int32),
     means2d: wp.array(dtype=wp.vec2),
-    radii: wp.array(dtype=wp.vec2i),
     conics: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
     alpha_min: float,
     exact: int,
     counts: wp.array(dtype=wp.int64),
     ends: wp.array(dtype=wp.int64),
-    masks: wp.array(dtype=wp.int64),
+    spans: wp.array2d(dtype=wp.int64),
     tile_size: int,
     tiles_x: int,
-    tiles_y: int,
     capacity: wp.int64,
     keys: wp.array(dtype=wp.int32),
     values: wp.array(dtype=wp.int32),
 ):
-    """Gaussian i = order[j]'s (tile id, i) pairs at ``ends[j] - counts[j]`` on (see ``count_tiles``)."""
+    """Gaussian i = order[j]'s (tile id, i) pairs at ``ends[j] - counts[j]`` on, from its span (see
+    ``count_tiles``; a Gaussian with a count has a radius, hence a span)."""
     j = wp.tid()
     i = order[j]
-    r = radii[i]
-    if r[0] > 0 and r[1] > 0 and counts[j] > wp.int64(0):
-        rect = tile_rect(means2d[i], r, tile_size, tiles_x, tiles_y)
+    if counts[j] > wp.int64(0):
+        rect = unpack_rect(spans[i, 0])
         k = ends[j] - counts[j]
         from_mask = exact != 0 and masked(rect)
         mask = wp.int64(0)
         e = Ellipse()
         if from_mask:
-            mask = masks[i]
+            mask = spans[i, 1]
         elif exact != 0:
             e = ellipse(means2d[i], conics[i], opacities[i], alpha_min)
         b = int(0)

@@ -55,7 +55,8 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
         approximate exp/log/sqrt/division and flushed denormals; the float64 camera transform is
         unaffected). Warp 1.19 does not pass it to its CPU compiler: there it changes nothing.
     record: (C, color_storage): also write each visible Gaussian's packed record (layout in
-        ``kernels/records.py``) into ``records`` [N, record_width / 4] vec4, with its C colours from
+        ``kernels/records.py``) into ``records`` [N, record_width / 2] int64 (each word the bits of
+        two float32 words of the row), with its C colours from
         ``colors`` [N, C] of ``color_storage`` when ``colors_in_record``; None: neither array is
         used (pass None for both). Written here rather than by a kernel of its own, which read back
         the outputs just written (a launch and a pass over N rows more). The records take no gradient.
@@ -71,10 +72,12 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
     Row = wp.types.vector(length=W, dtype=wp.float32)
 
     @wp.func
-    def write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int, xy: wp.vec2,
+    def write_record(records: wp.array2d(dtype=wp.int64), colors: wp.array2d(dtype=ColorT), i: int, xy: wp.vec2,
                      conic: wp.vec3, opacity: float, depth: float, alpha_min: float):
         """Row i of ``records``: zero-initialised (the padding is gathered with the rest of the
-        row), stored as whole vec4s (word by word, a thread's stores are 4 bytes at the row's stride)."""
+        row), stored 8 bytes at a time. A warp's stores land a row's stride apart, so each store
+        instruction touches a memory sector per thread: 8-byte stores touch half as many as
+        float32 ones (Warp's vec4 stores are four float32 stores)."""
         r = Row()
         r[R_XY] = xy[0]
         r[R_XY + 1] = xy[1]
@@ -89,18 +92,18 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
         if wp.static(WITH_COLORS):
             for c in range(C):
                 r[R_COLOR + c] = float(colors[i, c])
-        for q in range(W // 4):
-            records[i, q] = wp.vec4(r[4 * q], r[4 * q + 1], r[4 * q + 2], r[4 * q + 3])
+        for q in range(W // 2):
+            records[i, q] = wp.cast(wp.vec2(r[2 * q], r[2 * q + 1]), wp.int64)
 
     # The records take no gradient, and the generated adjoint kernel need not write them again
     # when it replays the forward: both are no-ops, so the record costs the backward nothing.
     @wp.func_grad(write_record)
-    def adj_write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int,
+    def adj_write_record(records: wp.array2d(dtype=wp.int64), colors: wp.array2d(dtype=ColorT), i: int,
                          xy: wp.vec2, conic: wp.vec3, opacity: float, depth: float, alpha_min: float):
         pass
 
     @wp.func_replay(write_record)
-    def replay_write_record(records: wp.array2d(dtype=wp.vec4), colors: wp.array2d(dtype=ColorT), i: int,
+    def replay_write_record(records: wp.array2d(dtype=wp.int64), colors: wp.array2d(dtype=ColorT), i: int,
                             xy: wp.vec2, conic: wp.vec3, opacity: float, depth: float, alpha_min: float):
         pass
 
@@ -124,7 +127,7 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
         depths: wp.array(dtype=float),
         radii: wp.array(dtype=wp.vec2i),
         opacities_out: wp.array(dtype=float),
-        records: wp.array2d(dtype=wp.vec4),
+        records: wp.array2d(dtype=wp.int64),
     ):
         i = wp.tid()
         # viewmat: row-major world-to-camera 4×4; intrinsics: row-major K (3×3). Both are read on the

@@ -263,10 +263,14 @@ def rasterize(
     Raises:
         ValueError: a tensor with the wrong shape, a non-finite value (naming the tensor), a bad
             option value, an unknown option keyword (``UnknownOptionError``, which names it and
-            lists the valid fields; also a TypeError), or a non-positive image size.
+            lists the valid fields; also a TypeError), a non-positive image size, or an image more
+            than ``binning.MAX_TILES_PER_AXIS`` tiles wide or high.
     """
     opts = resolve_options(options, **overrides)
     named = _validated(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
+    if max(math.ceil(int(width) / opts.tile_size), math.ceil(int(height) / opts.tile_size)) > binning.MAX_TILES_PER_AXIS:
+        raise ValueError(f"a {width}x{height} image has more than {binning.MAX_TILES_PER_AXIS} tiles of "
+                         f"{opts.tile_size} pixels along a side, which the binning cannot index")
     means, quats, scales, opacities, colors, viewmat, K, background = named.values()
     # The table the blending kernels read: a float16 copy made once per render, or colors itself.
     color_table = colors.to(torch.float16) if opts.color_storage == "float16" else colors
@@ -398,7 +402,7 @@ class RenderPlan:
         self.tile_counts = torch.empty(n, device=tdev, dtype=torch.int32)  # in index order
         self.counts = torch.empty(n, device=tdev, dtype=torch.int64)  # in depth order
         self.ends = torch.empty(n, device=tdev, dtype=torch.int64)
-        self.tile_masks = torch.empty(n, device=tdev, dtype=torch.int64)
+        self.tile_spans = torch.empty(n, 2, device=tdev, dtype=torch.int64)  # in index order
         # Without gradients (no_grad, or no input that needs one) nothing is allocated for them.
         g = with_grads
         with wp.ScopedDevice(self.device):
@@ -432,7 +436,7 @@ class RenderPlan:
                 "tile_counts": _wp(self.tile_counts, wp.int32),
                 "counts": _wp(self.counts, wp.int64),
                 "ends": _wp(self.ends, wp.int64),
-                "tile_masks": _wp(self.tile_masks, wp.int64),
+                "tile_spans": _wp(self.tile_spans, wp.int64),
                 "depth_bits": wp.from_torch(o["depths"].view(torch.int32), dtype=wp.int32),
                 # Allocated by torch, like every buffer here: in order on torch's stream.
                 "ranges": _wp(torch.empty(self.n_tiles, 2, device=tdev, dtype=torch.int32), wp.int32),
@@ -440,11 +444,14 @@ class RenderPlan:
                 "gaussian_grads": _wp(torch.zeros(n, gradient_width(c, opts.render_depth is not None), **f32),
                                       wp.float32) if g else None,
             }
-            w_out["records"] = None
+            w_out["records"] = w_out["record_pairs"] = None
             if packed:
-                # Packed per-Gaussian records, [N, P / 4] vec4 (P float32 words a row).
-                records = torch.empty(n, record_width(c, opts.color_storage) // 4, 4, **f32)
-                w_out["records"] = _wp(records, wp.vec4)
+                # Packed per-Gaussian records, [N, P / 4] vec4 (P float32 words a row) as the
+                # blending kernels gather them, and [N, P / 2] int64 as the projection writes them.
+                words = record_width(c, opts.color_storage)
+                records = torch.empty(n, words, **f32)
+                w_out["records"] = _wp(records.view(n, words // 4, 4), wp.vec4)
+                w_out["record_pairs"] = _wp(records.view(torch.int64), wp.int64)
         self.w = {**w_in, **w_out}
         if g:
             self.grads = [wp.to_torch(self.w[k].grad) for k in ("means", "quats", "scales", "opacities")] + [
@@ -457,7 +464,7 @@ class RenderPlan:
             inputs=[w["means"], w["quats"], w["scales"], w["opacities"], w["viewmat"], w["K"],
                     w["color_table"] if packed else None, width, height,
                     opts.near_plane, opts.far_plane, opts.eps2d, opts.alpha_min, opts.radius_clip],
-            outputs=[w["means2d"], w["conics"], w["depths"], w["radii"], w["opac_out"], w["records"]],
+            outputs=[w["means2d"], w["conics"], w["depths"], w["radii"], w["opac_out"], w["record_pairs"]],
         )
         self.keys = self.values = None
         with_depth = opts.render_depth is not None
@@ -481,7 +488,7 @@ class RenderPlan:
             return
         wp.launch(binning.count_tiles, dim=self.n,
                   inputs=[w["means2d"], w["radii"], *self._overlap(), opts.tile_size, self.tiles_x, self.tiles_y],
-                  outputs=[w["tile_counts"], w["tile_masks"]])
+                  outputs=[w["tile_counts"], w["tile_spans"]])
         wp.launch(binning.depth_order_keys, dim=self.n, inputs=[w["depth_bits"]], outputs=[w["depth_keys"], w["order"]])
         # Depths are >= 0, so their bit patterns' sign bit is clear.
         wp.utils.radix_sort_pairs(w["depth_keys"], w["order"], self.n, end_bit=31)
@@ -516,8 +523,8 @@ class RenderPlan:
         if padded:
             wp.launch(binning.pad_keys, dim=count, inputs=[w["ends"], self.n_tiles], outputs=[self.keys])
         wp.launch(binning.emit_intersections, dim=self.n,
-                  inputs=[w["order"], w["means2d"], w["radii"], *self._overlap(), w["counts"], w["ends"],
-                          w["tile_masks"], opts.tile_size, self.tiles_x, self.tiles_y, self.capacity],
+                  inputs=[w["order"], w["means2d"], *self._overlap(), w["counts"], w["ends"], w["tile_spans"],
+                          opts.tile_size, self.tiles_x, self.capacity],
                   outputs=[self.keys, self.values])
         wp.utils.radix_sort_pairs(self.keys, self.values, count, end_bit=tile_bits)
         wp.launch(binning.tile_ranges, dim=count, inputs=[self.keys, count], outputs=[w["ranges"]])

@@ -284,6 +284,8 @@ def test_bad_shapes_and_options_raise():
         rasterize(*args, tile_size=12)
     with pytest.raises(ValueError, match="width and height"):
         rasterize(*args[:7], 0, 10)
+    with pytest.raises(ValueError, match="more than 65535 tiles of 8 pixels"):  # refused before any buffer
+        rasterize(*args[:7], 8 * 65535 + 1, 10, tile_size=8)
     with pytest.raises(TypeError):
         rasterize(*args, not_an_option=1)
 

@@ -7,6 +7,7 @@ import torch
 import warp as wp
 
 from securegs_warp import rasterize
+from securegs_warp.kernels.binning import MAX_TILES_PER_AXIS, pack_rect, unpack_rect
 from securegs_warp.rasterizer import RasterOptions, RenderPlan
 from securegs_warp.raster_cases import (
     TEST_DEVICE, assert_matches_reference, hard_scene, random_scene, render_with_grads,
@@ -98,6 +99,24 @@ def test_needles_past_the_tile_mask_bin_as_those_within_it():
     assert (tiles < MASK_TILES / 2).any() and (tiles > 2 * MASK_TILES).any()
     assert torch.equal(ellipse[0], rectangle[0]) and torch.equal(ellipse[1], rectangle[1])
     assert ellipse[2]["n_intersections"] <= 0.6 * rectangle[2]["n_intersections"]
+
+
+@wp.kernel
+def _rect_round_trip(rects: wp.array(dtype=wp.vec4i), out: wp.array(dtype=wp.vec4i)):
+    i = wp.tid()
+    out[i] = unpack_rect(pack_rect(rects[i]))
+
+
+def test_a_span_keeps_every_tile_coordinate_up_to_the_limit():
+    # Each coordinate has 16 bits of one int64, the last one its sign bit's: the extremes and a mix.
+    M = MAX_TILES_PER_AXIS
+    wp.init()
+    rects = torch.tensor([[0, 0, 0, 0], [M, M, M, M], [0, M, 1, M - 1], [M, 0, M, 0], [1234, 65, 40000, 32768]],
+                         dtype=torch.int32)
+    w_rects = wp.from_torch(rects.to(TEST_DEVICE), dtype=wp.vec4i)
+    out = wp.zeros(rects.shape[0], dtype=wp.vec4i, device=w_rects.device)
+    wp.launch(_rect_round_trip, dim=rects.shape[0], inputs=[w_rects, out], device=w_rects.device)
+    assert torch.equal(wp.to_torch(out).cpu(), rects)
 
 
 def test_each_tiles_list_runs_front_to_back_with_ties_in_gaussian_order():
