@@ -234,7 +234,13 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
         if rx > 0.0:
             radii[i] = wp.vec2i(int(rx), int(ry))
         else:
+            # Every row of every output is written, so no render clears them first (a pass over N
+            # rows of four arrays, where culled Gaussians are usually few).
             radii[i] = wp.vec2i(0, 0)
+            means2d[i] = wp.vec2(0.0, 0.0)
+            conics[i] = wp.vec3(0.0, 0.0, 0.0)
+            depths[i] = 0.0
+            opacities_out[i] = 0.0
 
     tag = (f"{'aa' if antialiased else 'classic'}_{radius_rule}{'_fast' if fast_math else ''}"
            f"{f'_rec{C}_{color_storage}' if PACK else ''}")

@@ -64,7 +64,6 @@ class _Captured:
         self.pending: _Render | None = None  # the last forward, not yet read
         if self.cuda:  # where the replays' status lands, asynchronously
             self.host_status = torch.empty_like(self.status, device="cpu", pin_memory=True)
-        self.zeroed_outputs = [self.plan.w[k] for k in ("means2d", "conics", "depths", "opac_out")]
         # Gradients the backward accumulates into, zeroed by each replay: the inputs' (the projection's
         # adjoint adds to them), the blending backward's table and the background's. The projection's
         # outputs' gradients and the colours' are overwritten from the table.
@@ -76,8 +75,6 @@ class _Captured:
         self.w_cotangents = [wp.from_torch(t, dtype=wp.float32) for t in self.cotangents]
 
     def _forward_ops(self):
-        for a in self.zeroed_outputs:
-            a.zero_()
         self.w_status.zero_()
         for values, ends, first_slot in self.checks:
             wp.launch(flag_nonfinite, dim=values.shape[0], inputs=[values, ends, self.w_status, first_slot])

@@ -391,9 +391,10 @@ class RenderPlan:
         self.n_tiles = self.tiles_x * self.tiles_y
         self.out = {"image": torch.empty(height, width, c, **f32), "alpha": torch.empty(height, width, 1, **f32),
                     "depth": torch.zeros(height, width, 1, **f32),
-                    "radii": torch.zeros(n, 2, device=tdev, dtype=torch.int32),
-                    "means2d": torch.zeros(n, 2, **f32), "conics": torch.zeros(n, 3, **f32),
-                    "depths": torch.zeros(n, **f32), "opacities": torch.zeros(n, **f32)}
+                    # The projection writes every row of these (zeros for a culled Gaussian).
+                    "radii": torch.empty(n, 2, device=tdev, dtype=torch.int32),
+                    "means2d": torch.empty(n, 2, **f32), "conics": torch.empty(n, 3, **f32),
+                    "depths": torch.empty(n, **f32), "opacities": torch.empty(n, **f32)}
         self.transmittance = torch.empty(height, width, **f32)
         self.last = torch.empty(height, width, device=tdev, dtype=torch.int32)
         # The depth sort's keys and values (Gaussian ids in depth order), twice N as the sort needs.

@@ -66,6 +66,24 @@ def test_repeated_renders_reuse_one_entry_with_new_inputs():
     assert [len(v) for v in raster_graph._POOL.values()] == [1]
 
 
+def test_a_gaussian_culled_after_a_render_of_its_entry_has_zero_outputs():
+    # No render clears the per-Gaussian outputs: the projection writes every row, a culled
+    # Gaussian's as zeros. Gaussians in view in one render of an entry and behind the camera, or
+    # off the image, in the next must not keep the first render's values.
+    first, second = random_scene(16, n=70), random_scene(16, n=70)
+    second.means[0::7, 2] = -1.0
+    second.means[3::7, 0] = 50.0
+    culled = torch.zeros(70, dtype=torch.bool)
+    culled[0::7] = culled[3::7] = True
+    in_view, _ = render(first, True)
+    assert (in_view[2][culled] > 0).all()
+    captured, eager = render(second, True), render(second, False)
+    assert_same(captured, eager)
+    for out in captured[0][2:7]:
+        assert (out[culled] == 0).all()
+    assert (captured[0][2][~culled] > 0).any()
+
+
 def test_two_renders_in_flight_keep_their_own_state():
     a_scene, b_scene = random_scene(14, n=70), random_scene(15, n=70)
     leaves = []
