@@ -268,7 +268,8 @@ def rasterize(
     """
     opts = resolve_options(options, **overrides)
     named = _validated(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
-    if max(math.ceil(int(width) / opts.tile_size), math.ceil(int(height) / opts.tile_size)) > binning.MAX_TILES_PER_AXIS:
+    tiles_per_side = max(math.ceil(int(width) / opts.tile_size), math.ceil(int(height) / opts.tile_size))
+    if tiles_per_side > binning.MAX_TILES_PER_AXIS:
         raise ValueError(f"a {width}x{height} image has more than {binning.MAX_TILES_PER_AXIS} tiles of "
                          f"{opts.tile_size} pixels along a side, which the binning cannot index")
     means, quats, scales, opacities, colors, viewmat, K, background = named.values()
