@@ -9,9 +9,10 @@ Pipeline (driven by ``securegs_warp.rasterizer``):
    tiles covered by its screen rectangle; with ``exact`` only the tiles of that rectangle that the
    Gaussian's ellipse at the alpha threshold reaches (``reaches_tile``, Speedy-Splat's AccuTile): a
    thin diagonal Gaussian touches a band of tiles, not its whole bounding square. The answers for a
-   rectangle of up to MASK_TILES tiles are kept as a bit mask, so step 4 does not test again; the
-   rectangle and the mask are its ``span``, 16 bytes, which step 4 gathers in depth order with one
-   random access where it gathered the centre, the radii and the mask with three.
+   rectangle of up to MASK_TILES tiles are kept as a bit mask, so step 4 does not test again. The
+   rectangle and the mask are the Gaussian's ``span``, one 16-byte row: step 4 runs in depth order,
+   so each of its per-Gaussian reads lands on a random row, and the span is one memory sector
+   (a rectangle past MASK_TILES tiles still reads the centre, conic and opacity to test again).
    ``depth_ordered_counts`` then gathers the counts into depth order (int64: 3M Gaussians times
    dozens of tiles overflows int32).
 3. inclusive prefix sum of the counts in depth order (``wp.utils.array_scan``): its last entry is the

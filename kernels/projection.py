@@ -234,8 +234,9 @@ def projection_kernel(antialiased: bool, radius_rule: str, fast_math: bool, reco
         if rx > 0.0:
             radii[i] = wp.vec2i(int(rx), int(ry))
         else:
-            # Every row of every output is written, so no render clears them first (a pass over N
-            # rows of four arrays, where culled Gaussians are usually few).
+            # Every row of these outputs is written, so no render clears them first (a pass over N
+            # rows of four arrays, where culled Gaussians are usually few). A culled row's record
+            # is never gathered and stays unwritten.
             radii[i] = wp.vec2i(0, 0)
             means2d[i] = wp.vec2(0.0, 0.0)
             conics[i] = wp.vec3(0.0, 0.0, 0.0)

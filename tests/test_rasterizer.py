@@ -286,6 +286,7 @@ def test_bad_shapes_and_options_raise():
         rasterize(*args[:7], 0, 10)
     with pytest.raises(ValueError, match="more than 65535 tiles of 8 pixels"):  # refused before any buffer
         rasterize(*args[:7], 8 * 65535 + 1, 10, tile_size=8)
+    rasterize(*args[:7], 8 * 65535, 2, tile_size=8)  # the largest a span indexes
     with pytest.raises(TypeError):
         rasterize(*args, not_an_option=1)
 
