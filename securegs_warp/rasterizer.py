@@ -268,10 +268,6 @@ def rasterize(
     """
     opts = resolve_options(options, **overrides)
     named = _validated(means, quats, scales, opacities, colors, viewmat, K, width, height, background)
-    tiles_per_side = max(math.ceil(int(width) / opts.tile_size), math.ceil(int(height) / opts.tile_size))
-    if tiles_per_side > binning.MAX_TILES_PER_AXIS:
-        raise ValueError(f"a {width}x{height} image has more than {binning.MAX_TILES_PER_AXIS} tiles of "
-                         f"{opts.tile_size} pixels along a side, which the binning cannot index")
     means, quats, scales, opacities, colors, viewmat, K, background = named.values()
     # The table the blending kernels read: a float16 copy made once per render, or colors itself.
     color_table = colors.to(torch.float16) if opts.color_storage == "float16" else colors
@@ -389,6 +385,9 @@ class RenderPlan:
         f32 = dict(device=tdev, dtype=torch.float32)
         ts = opts.tile_size
         self.tiles_x, self.tiles_y = math.ceil(width / ts), math.ceil(height / ts)
+        if max(self.tiles_x, self.tiles_y) > binning.MAX_TILES_PER_AXIS:
+            raise ValueError(f"a {width}x{height} image has more than {binning.MAX_TILES_PER_AXIS} tiles of {ts} "
+                             "pixels along a side, which the binning cannot index")
         self.n_tiles = self.tiles_x * self.tiles_y
         self.out = {"image": torch.empty(height, width, c, **f32), "alpha": torch.empty(height, width, 1, **f32),
                     "depth": torch.zeros(height, width, 1, **f32),
