@@ -49,6 +49,10 @@ _POOL: collections.OrderedDict[tuple, list[_Captured]] = collections.OrderedDict
 class _Captured:
     def __init__(self, inputs: dict, checked: dict, width: int, height: int, opts: RasterOptions):
         self.static, self.names, self.checks = _static_inputs(inputs, checked)
+        # The inputs each forward copies in: all but a colour table that is the colours themselves
+        # (the same for every render of the entry: the table's storage is one of its options).
+        self.copied = [name for name, t in inputs.items() if name != "color_table" or t is not inputs["colors"]]
+        self.static_copied = [self.static[name] for name in self.copied]
         self.plan = RenderPlan(self.static, width, height, opts)
         self.cuda = self.static["means"].device.type == "cuda"
         # What each forward writes for the host to read: [1 + K] int64, the intersection count, then
@@ -93,35 +97,36 @@ class _Captured:
         """``ops()`` directly (the CPU, and CUDA's first call, which also loads the kernels), then
         captured on a side stream (CUDA cannot capture torch's legacy default stream) and replayed
         on torch's current stream."""
+        # On the CPU, or inside a caller's CUDA graph (secure.hidden_graph), which records these
+        # launches itself, the launches run directly.
+        direct = not self.cuda or torch.cuda.is_current_stream_capturing()
+        graph = None if direct else self.graphs.get(name)
+        if graph is not None:
+            # A replay names its stream: it needs none of the scope's device and stream switches.
+            wp.capture_launch(graph, stream=warp_stream(self.static["means"].device))
+            return
         with self.plan.scoped():
-            if not self.cuda or torch.cuda.is_current_stream_capturing():
-                # On the CPU, or inside a caller's CUDA graph (secure.hidden_graph), which records
-                # these launches itself.
-                ops()
+            ops()
+            if direct:
                 return
-            graph = self.graphs.get(name)
-            if graph is None:
-                ops()
-                side = torch.cuda.Stream(self.static["means"].device)
-                side.wait_stream(torch.cuda.current_stream())
-                w_side = warp_stream(side)
-                # A garbage collection during the capture could free a CUDA graph (a caller's, or an
-                # evicted entry's), which CUDA refuses while a stream captures, and the capture would
-                # fail: collect before (as torch.cuda.graph does) and not during.
-                gc.collect()
-                collecting = gc.isenabled()
-                gc.disable()
-                try:
-                    # Warp launches go to its current stream: make it the capturing one.
-                    with wp.ScopedStream(w_side), wp.ScopedCapture(device=self.plan.device, stream=w_side) as capture:
-                        ops()
-                finally:
-                    if collecting:
-                        gc.enable()
-                torch.cuda.current_stream().wait_stream(side)
-                self.graphs[name] = capture.graph
-            else:
-                wp.capture_launch(graph, stream=warp_stream(torch.cuda.current_stream()))
+            side = torch.cuda.Stream(self.static["means"].device)
+            side.wait_stream(torch.cuda.current_stream())
+            w_side = warp_stream(side)
+            # A garbage collection during the capture could free a CUDA graph (a caller's, or an
+            # evicted entry's), which CUDA refuses while a stream captures, and the capture would
+            # fail: collect before (as torch.cuda.graph does) and not during.
+            gc.collect()
+            collecting = gc.isenabled()
+            gc.disable()
+            try:
+                # Warp launches go to its current stream: make it the capturing one.
+                with wp.ScopedStream(w_side), wp.ScopedCapture(device=self.plan.device, stream=w_side) as capture:
+                    ops()
+            finally:
+                if collecting:
+                    gc.enable()
+            torch.cuda.current_stream().wait_stream(side)
+            self.graphs[name] = capture.graph
 
     def check_pending(self, grow: bool = True) -> None:
         """Read the last forward once it has finished: raise for a non-finite input; for an
@@ -145,8 +150,7 @@ class _Captured:
     def forward(self, inputs: dict) -> tuple[list, _Render]:
         self.check_pending()
         # One multi-tensor copy (a launch or two on CUDA) rather than one a tensor.
-        names = [name for name, t in inputs.items() if name != "color_table" or t is not inputs["colors"]]
-        torch._foreach_copy_([self.static[name] for name in names], [inputs[name] for name in names])
+        torch._foreach_copy_(self.static_copied, [inputs[name] for name in self.copied])
         self._run("forward", self._forward_ops)
         if self.cuda and torch.cuda.is_current_stream_capturing():
             # Inside a caller's graph nothing runs before its replays: there is nothing to read
@@ -292,13 +296,9 @@ class _CapturedRasterize(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, colors, background, inputs, width, height, opts, info, checked):
         wp.init()
         entry = _acquire(inputs, checked, width, height, opts)
-        lease = Lease(entry)
-        try:
-            outputs, render = entry.forward(inputs)
-        except BaseException:
-            lease.release()
-            raise
-        ctx.lease = lease
+        outputs, render = entry.forward(inputs)
+        # Taken once the replay is queued (nothing else can take the entry in between).
+        ctx.lease = Lease(entry)
         ctx.info = info
         # For a caller's graph that records this render (secure.hidden_graph): the capacity it
         # replays with, the entry's growth, and a lease that keeps the entry (and so the buffers the

@@ -9,6 +9,7 @@ kept per shape from Warp graphs (``securegs_warp.raster_graph``).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import torch
@@ -279,13 +280,9 @@ def rasterize(
     if color_table is not colors:
         checked["colors (as float16: |value| > 65504)"] = "color_table"
     checked = {name: key for name, key in checked.items() if inputs[key].numel()}
-    n = means.shape[0]
-    info = {
-        "means2d_grad": torch.zeros(n, 2, device=means.device, dtype=torch.float32),
-        "tile_size": opts.tile_size,
-        "width": int(width),
-        "height": int(height),
-    }
+    # means2d_grad is added after the op has queued its work (a captured render's replay starts the
+    # GPU sooner); only the backward reads it.
+    info = {"tile_size": opts.tile_size, "width": int(width), "height": int(height)}
     needs_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (means, quats, scales, opacities, colors, background))
     if opts.capture:
@@ -302,6 +299,7 @@ def rasterize(
         outputs = _Rasterize.apply(*inputs.values(), int(width), int(height), opts, info, (tuple(checked), flags),
                                    needs_grad)
     image, alpha, depth, radii, means2d, conics, depths, opac, n_isect = outputs
+    info["means2d_grad"] = torch.zeros(means.shape[0], 2, device=means.device, dtype=torch.float32)
     info.update(radii=radii, means2d=means2d, conics=conics, depths=depths, opacities=opac, n_intersections=n_isect)
     if opts.render_depth == "accumulated":
         info["depth"] = depth
@@ -330,7 +328,7 @@ def _validated(means, quats, scales, opacities, colors, viewmat, K, width, heigh
         raise ValueError(f"colors must be [N, C] with N={n} and C >= 1, got {list(colors.shape)}")
     c = colors.shape[1]
     if background is None:
-        background = torch.zeros(c, device=means.device, dtype=torch.float32)
+        background = _zero_background(c, means.device)
     elif not isinstance(background, torch.Tensor) or tuple(background.shape) != (c,):
         raise ValueError(f"background must be a tensor of shape [{c}] (one value per colour channel)")
     named["background"] = background
@@ -340,6 +338,20 @@ def _validated(means, quats, scales, opacities, colors, viewmat, K, width, heigh
     if int(width) < 1 or int(height) < 1:
         raise ValueError(f"width and height must be >= 1, got {width}x{height}")
     return {name: t.float().contiguous() for name, t in named.items()}
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_zeros(c: int, device: torch.device) -> torch.Tensor:
+    return torch.zeros(c, device=device, dtype=torch.float32)
+
+
+def _zero_background(c: int, device: torch.device) -> torch.Tensor:
+    """A [c] float32 zero background on ``device``: one tensor kept per (c, device), which nothing
+    writes (a render reads its background), saving an allocation and a launch per render; made afresh
+    inside a CUDA graph capture, where a new tensor's zeros would be written only by the replays."""
+    if device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+        return torch.zeros(c, device=device, dtype=torch.float32)
+    return _cached_zeros(c, device)
 
 
 def _wp(t: torch.Tensor, dtype, grad: bool = False, retain_grad: bool = False):
