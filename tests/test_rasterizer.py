@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from securegs_warp import RasterOptions, UnknownOptionError, rasterize, reference
+from securegs_warp import RasterOptions, UnknownOptionError, rasterize, rasterizer, reference
 from securegs_warp.rasterizer import TRANSMITTANCE_FLOOR
 from securegs_warp.raster_cases import (
     DIFF_INPUTS, aniso_scales, assert_matches_reference, hard_scene, intrinsics, layered_scene, random_scene,
@@ -92,6 +92,23 @@ def test_means2d_grad_for_densification():
     assert g.shape == (30, 2) and torch.isfinite(g).all()
     visible = info["radii"][:, 0] > 0
     assert (g[visible].norm(dim=1) > 0).any() and (g[~visible] == 0).all()
+
+
+@pytest.mark.parametrize("capture", [False, True])
+def test_renders_without_background_share_one_that_stays_zero(capture):
+    """Renders given no background read one kept zero tensor: a render, and its backward with a
+    gradient on the background's place, must leave it zero; and the image matches an explicit zero
+    background's."""
+    s = random_scene(11, n=30)
+    leaves = [t.clone().requires_grad_(True) for t in (s.means, s.quats, s.scales, s.opacities, s.colors)]
+    image, _, _ = rasterize(*leaves, s.viewmat, s.K, s.width, s.height, capture=capture)
+    (image * 2.0).sum().backward()
+    kept = rasterizer._zero_background(s.colors.shape[1], s.means.device)
+    assert kept is rasterizer._zero_background(s.colors.shape[1], s.means.device)
+    assert torch.equal(kept, torch.zeros_like(kept))
+    explicit, _, _ = rasterize(*leaves, s.viewmat, s.K, s.width, s.height, background=torch.zeros(s.colors.shape[1]),
+                               capture=capture)
+    assert torch.equal(image, explicit)
 
 
 # ---------------------------------------------------------------------------------------------
