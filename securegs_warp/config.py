@@ -323,6 +323,10 @@ class SecureConfig:
         encoding, depth). None: BOX_FRAME_DEFAULTS in the box frame, PrivateHeads' (0 and 1) in the anchor frame.
     hidden_eps2d: the hidden render's screen-space dilation (``PrivateHeads`` eps2d, saved in the key),
         in training and whenever the key renders; None: the public render's ``RasterOptions.eps2d``.
+    hidden_scale_gain: how many times its anchor's scale a hidden Gaussian may grow
+        (``PrivateHeads`` scale_gain, saved in the key); None: 1, Scaffold-GS's bound. Not the
+        default: it lifts an object whose large flat parts the cover's small anchors cannot cover
+        and costs the others (docs/results.md, "A private scale gain").
     hidden_stride: the hidden renders are made and trained on every hidden_stride-th step only, their
         loss weighted hidden_stride times, so that the hidden loss's gradient keeps its mean over the
         run; the steps between are plain Scaffold-GS steps (plus the bit projection). Most of what a
@@ -380,6 +384,7 @@ class SecureConfig:
     hidden_encoding: int | None = None
     hidden_depth: int | None = None
     hidden_eps2d: float | None = None
+    hidden_scale_gain: float | None = None
     hidden_crop: bool = False
     hidden_stride: int = 1
     hidden_finish: float | None = None
@@ -443,13 +448,14 @@ class SecureConfig:
 
     def private_options(self, kind: str | None, mode: str) -> dict:
         """The ``PrivateHeads`` keyword arguments these options select (frame, n_hidden, width,
-        serving, encoding, depth, latent, codes, code_scales, code_cells, eps2d) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
+        serving, encoding, depth, latent, codes, code_scales, code_cells, eps2d, scale_gain) for a secret hiding ``kind`` (a ``PayloadSpec.kind``) in a run of
         density ``mode`` (``strategy_mode``), with the frame's defaults filled in."""
         frame = self.hidden_frame or ("box" if mode == "cover" and kind == "object" else "anchor")
         given = {"n_hidden": self.hidden_offsets, "width": self.hidden_width, "serving": self.hidden_anchors,
                  "encoding": self.hidden_encoding, "depth": self.hidden_depth, "latent": self.hidden_latent,
                  "codes": self.hidden_codes, "code_scales": self.hidden_code_scales,
-                 "code_cells": self.hidden_code_cells, "eps2d": self.hidden_eps2d}
+                 "code_cells": self.hidden_code_cells, "eps2d": self.hidden_eps2d,
+                 "scale_gain": self.hidden_scale_gain}
         # The anchor frame leaves what is not given to PrivateHeads' own defaults (the public k and d).
         defaults = BOX_FRAME_DEFAULTS if frame == "box" else {}
         return {"frame": frame, **defaults, **{name: value for name, value in given.items() if value is not None}}
@@ -475,6 +481,8 @@ class SecureConfig:
             raise ValueError(f"hidden_encoding must be >= 0, got {self.hidden_encoding}")
         if self.hidden_eps2d is not None and not 0.0 <= self.hidden_eps2d < math.inf:
             raise ValueError(f"hidden_eps2d must be >= 0 and finite, got {self.hidden_eps2d}")
+        if self.hidden_scale_gain is not None and not 1.0 <= self.hidden_scale_gain < math.inf:
+            raise ValueError(f"hidden_scale_gain must be >= 1 and finite, got {self.hidden_scale_gain}")
         if self.hidden_codes is not None and self.hidden_codes < 0:
             raise ValueError(f"hidden_codes must be 0 (none) or a number of rows >= 1, got {self.hidden_codes}")
         if self.hidden_code_cells is not None and self.hidden_code_cells < 1:

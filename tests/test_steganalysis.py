@@ -276,6 +276,44 @@ def test_the_hidden_dilation_is_in_the_key_and_leaves_the_public_render_alone(tm
         SecureConfig(hidden_eps2d=-1.0)
 
 
+def test_the_scale_gain_is_in_the_key_and_multiplies_the_hidden_gaussians_scales_alone(tmp_path):
+    """--hidden-scale-gain: the key records its gain, the hidden Gaussians' scales are that many
+    times those of a gain of 1 (their positions, colours and the public render unchanged), a key
+    written before the gain existed opens with 1, and a gain below 1 is refused."""
+    from securegs_warp.model import ScaffoldHeads
+    from securegs_warp.secure.heads import PrivateHeads
+
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
+                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", "--hidden-scale-gain", "3",
+                 *TINY]) == 0
+    model, meta = open_container(out / "public", out / "key.safetensors")
+    assert meta["heads"]["scale_gain"] == 3.0 and model.private.scale_gain == 3.0
+    cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+    with torch.no_grad():
+        gained = model.hidden_gaussians(cam)
+        public = model.render(cam, RasterOptions(tile_size=8))["image"]
+        model.private.scale_gain = 1.0
+        plain = model.hidden_gaussians(cam)
+        assert torch.equal(model.render(cam, RasterOptions(tile_size=8))["image"], public)
+    assert torch.allclose(gained["scales"], 3.0 * plain["scales"], rtol=1e-5)
+    for name in ("means", "colors", "opacities"):
+        assert torch.equal(gained[name], plain[name]), name
+    older = {k: v for k, v in meta["heads"].items() if k != "scale_gain"}
+    assert PrivateHeads(model.heads, **older).scale_gain == 1.0
+    # The anchor frame (no box, no codes) takes a gain too.
+    anchor_frame = PrivateHeads(ScaffoldHeads(2, 2), scale_gain=2.0)
+    log_scaling = torch.randn(5, 6)
+    shifted = anchor_frame.anchor_source(torch.randn(5, 3), torch.randn(5, 2), log_scaling)[1]
+    assert torch.equal(shifted[:, :3], log_scaling[:, :3])
+    assert torch.allclose(shifted[:, 3:], log_scaling[:, 3:] + math.log(2.0))
+    assert PrivateHeads(ScaffoldHeads(2, 2)).anchor_source is None
+    with pytest.raises(ValueError, match="scale_gain must be >= 1"):
+        PrivateHeads(ScaffoldHeads(2, 2), scale_gain=0.5)
+    with pytest.raises(ValueError, match="hidden_scale_gain must be >= 1"):
+        SecureConfig(hidden_scale_gain=0.5)
+
+
 def test_a_key_with_scale_codes_opens_and_its_codes_scale_the_hidden_gaussians(tmp_path):
     """--hidden-codes with --hidden-code-scales and --hidden-code-cells: the key records them, opens
     with its table's scale columns and its cells, and the scale columns multiply the hidden

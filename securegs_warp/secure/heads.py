@@ -158,6 +158,12 @@ class PrivateHeads(nn.Module):
     eps2d: the hidden render's screen-space dilation (``RasterOptions.eps2d``, added to each 2D
         covariance), None: the render options' own. The public render must keep Scaffold-GS's for
         the release to look the same in its viewer; the hidden render is the key holder's alone.
+    scale_gain: g ≥ 1, the hidden Gaussians' largest scale as a multiple of their anchor's:
+        g · exp(l_v[3:]) · sigmoid(F_cov†) (1: Scaffold-GS's bound). Where the hidden loss moves
+        nothing in the release, the anchors' scalings are the cover's, sized for the cover's own
+        surfaces; an object's large flat parts then need many small Gaussians and come out blotchy.
+        F_cov† starts at sigmoid(0) as before, so a gain starts every hidden Gaussian g times larger
+        too. A key written before the gain existed used 1.
     """
 
     def __init__(self, public: ScaffoldHeads, *, message: str | None = None, bit_seed: str | None = None,
@@ -166,10 +172,12 @@ class PrivateHeads(nn.Module):
                  n_hidden: int | None = None, width: int | None = None, serving: int = 0,
                  encoding: int = 0, depth: int = 1, latent: int = 0, codes: int = 0, code_scales: bool = False,
                  code_cells: int = CODE_CELLS, recorded: int = 0,
-                 eps2d: float | None = None):
+                 eps2d: float | None = None, scale_gain: float = 1.0):
         super().__init__()
         if eps2d is not None and not 0.0 <= eps2d < math.inf:
             raise ValueError(f"eps2d must be >= 0 and finite, got {eps2d}")
+        if not 1.0 <= scale_gain < math.inf:
+            raise ValueError(f"scale_gain must be >= 1 and finite, got {scale_gain}")
         if frame not in FRAMES:
             raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
         if frame == "box" and not offsets:
@@ -193,6 +201,7 @@ class PrivateHeads(nn.Module):
         self.frame, self.width, self.serving = frame, w, int(serving)
         self.encoding, self.depth = int(encoding), int(depth)
         self.eps2d = None if eps2d is None else float(eps2d)
+        self.scale_gain = float(scale_gain)
         self.decoder = ScaffoldHeads(d, k, use_feat_bank=public.use_feat_bank,
                                      add_opacity_dist=public.add_opacity_dist, add_cov_dist=public.add_cov_dist,
                                      add_color_dist=public.add_color_dist, width=w) if hidden else None
@@ -238,22 +247,27 @@ class PrivateHeads(nn.Module):
     @property
     def anchor_source(self):
         """The ``AnchorSource`` of the hidden decoding: the public features plus the latent grid's
-        and the codes' values at each anchor, the public log scalings plus the codes' scale part
-        (None with neither grid nor codes)."""
-        return None if self.latent_grid is None and self.codes is None else self._private_inputs
+        and the codes' values at each anchor, the public log scalings plus the codes' scale part and
+        log(scale_gain) (None with neither grid nor codes and a gain of 1)."""
+        if self.latent_grid is None and self.codes is None and self.scale_gain == 1.0:
+            return None
+        return self._private_inputs
 
     def _private_inputs(self, xyz: torch.Tensor, feat: torch.Tensor,
                         log_scaling: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Features [Nv, d] and log scalings [Nv, 6] of anchors at positions xyz [Nv, 3], with the
-        grid's and the codes' values added."""
-        where = self.box_position(xyz)
+        grid's and the codes' values added, and log(scale_gain) to the Gaussians' part l_v[3:]."""
+        scale_shift = math.log(self.scale_gain)
+        where = None if self.latent_grid is None and self.codes is None else self.box_position(xyz)
         if self.latent_grid is not None:
             feat = feat + self.latent_grid(where)
         if self.codes is not None:
             code = self.codes(where)
             feat = feat + code[:, :self.feat_dim]
             if self.codes.scales:
-                log_scaling = torch.cat([log_scaling[:, :3], log_scaling[:, 3:] + code[:, self.feat_dim:]], dim=1)
+                scale_shift = code[:, self.feat_dim:] + scale_shift
+        if not isinstance(scale_shift, float) or scale_shift != 0.0:
+            log_scaling = torch.cat([log_scaling[:, :3], log_scaling[:, 3:] + scale_shift], dim=1)
         return feat, log_scaling
 
     def box_position(self, xyz: torch.Tensor) -> torch.Tensor:
@@ -427,4 +441,5 @@ class PrivateHeads(nn.Module):
                 "codes": 0 if self.codes is None else self.codes.rows,
                 "code_scales": self.codes is not None and self.codes.scales,
                 "code_cells": CODE_CELLS if self.codes is None else self.codes.cells,
-                "recorded": len(getattr(self, "anchor_record", ())), "eps2d": self.eps2d}
+                "recorded": len(getattr(self, "anchor_record", ())), "eps2d": self.eps2d,
+                "scale_gain": self.scale_gain}
