@@ -249,16 +249,25 @@ def test_the_exported_hidden_gaussians_are_those_the_latent_grid_renders(scene):
                                                                                atol=1e-6), name
 
 
+def _tiny_cover_key(tmp_path, *flags):
+    """(model, key metadata) of a 4-step cover-mode container of a tiny object, hidden with ``flags``
+    on top of a small private decoder, opened with its key."""
+    out = tmp_path / "c"
+    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
+                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", *flags, *TINY]) == 0
+    return open_container(out / "public", out / "key.safetensors")
+
+
+def _tiny_view():
+    return make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+
+
 def test_the_hidden_dilation_is_in_the_key_and_leaves_the_public_render_alone(tmp_path):
     """--hidden-eps2d: the key's hidden renders dilate by its own eps2d, the public render by the
     options it is given, and a key without one renders as before."""
-    out = tmp_path / "c"
-    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
-                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", "--hidden-eps2d", "0.05",
-                 *TINY]) == 0
-    model, meta = open_container(out / "public", out / "key.safetensors")
+    model, meta = _tiny_cover_key(tmp_path, "--hidden-eps2d", "0.05")
     assert meta["heads"]["eps2d"] == 0.05 and model.private.eps2d == 0.05
-    cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+    cam = _tiny_view()
     options = RasterOptions(tile_size=8)
     with torch.no_grad():
         own = model.render_hidden(cam, options)["image"]
@@ -283,13 +292,9 @@ def test_the_scale_gain_is_in_the_key_and_multiplies_the_hidden_gaussians_scales
     from securegs_warp.model import ScaffoldHeads
     from securegs_warp.secure.heads import PrivateHeads
 
-    out = tmp_path / "c"
-    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
-                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", "--hidden-scale-gain", "3",
-                 *TINY]) == 0
-    model, meta = open_container(out / "public", out / "key.safetensors")
+    model, meta = _tiny_cover_key(tmp_path, "--hidden-scale-gain", "3")
     assert meta["heads"]["scale_gain"] == 3.0 and model.private.scale_gain == 3.0
-    cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+    cam = _tiny_view()
     with torch.no_grad():
         gained = model.hidden_gaussians(cam)
         public = model.render(cam, RasterOptions(tile_size=8))["image"]
@@ -321,19 +326,15 @@ def test_a_key_with_scale_codes_opens_and_its_codes_scale_the_hidden_gaussians(t
     opens with CODE_CELLS."""
     from securegs_warp.secure.heads import CODE_CELLS, PrivateHeads
 
-    out = tmp_path / "c"
-    assert main(["hide", "--out", str(out), "--iterations", "4", "--quiet", "--payload", "object", "--mode", "cover",
-                 "--hidden-offsets", "3", "--hidden-width", "8", "--hidden-anchors", "40", "--hidden-codes", "64",
-                 "--hidden-code-scales", "--hidden-code-cells", "32", "--hidden-feature-grad", "0",
-                 "--hidden-scaling-grad", "0", *TINY]) == 0
-    model, meta = open_container(out / "public", out / "key.safetensors")
+    model, meta = _tiny_cover_key(tmp_path, "--hidden-codes", "64", "--hidden-code-scales", "--hidden-code-cells", "32",
+                                  "--hidden-feature-grad", "0", "--hidden-scaling-grad", "0")
     assert meta["heads"]["codes"] == 64 and meta["heads"]["code_scales"] and meta["heads"]["code_cells"] == 32
     assert model.private.codes.cells == 32
     older = {k: v for k, v in meta["heads"].items() if k != "code_cells"}
     assert PrivateHeads(model.heads, **older).codes.cells == CODE_CELLS
     d = model.anchors.feat.shape[1]
     assert model.private.codes.table.shape == (64, d + 3)
-    cam = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+    cam = _tiny_view()
     with torch.no_grad():
         before = model.hidden_gaussians(cam)["scales"]
         public = model.render(cam, RasterOptions(tile_size=8))["image"]
