@@ -325,8 +325,9 @@ class SecureConfig:
         in training and whenever the key renders; None: the public render's ``RasterOptions.eps2d``.
     hidden_scale_gain: how many times its anchor's scale a hidden Gaussian may grow
         (``PrivateHeads`` scale_gain, saved in the key); None: 1, Scaffold-GS's bound. Not the
-        default: it lifts an object whose large flat parts the cover's small anchors cannot cover
-        and costs the others (docs/results.md, "A private scale gain").
+        default: at low resolution it lifts an object whose large flat parts the cover's small
+        anchors cannot cover and costs the others; at 1080p it cost both kinds
+        (docs/results.md, "A private scale gain").
     hidden_stride: the hidden renders are made and trained on every hidden_stride-th step only, their
         loss weighted hidden_stride times, so that the hidden loss's gradient keeps its mean over the
         run; the steps between are plain Scaffold-GS steps (plus the bit projection). Most of what a

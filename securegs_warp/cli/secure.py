@@ -77,8 +77,9 @@ SECURE_FLAGS = (
     ("--hidden-eps2d", "secure.hidden_eps2d", "the hidden render's screen-space dilation, kept in the key (default: "
                                               "the public render's, 0.3)"),
     ("--hidden-scale-gain", "secure.hidden_scale_gain", "how many times its anchor's scale a hidden Gaussian may "
-                                                        "grow, kept in the key (default 1; larger helps objects with "
-                                                        "large flat parts and costs others: docs/results.md)"),
+                                                        "grow, kept in the key (default 1; at low resolution larger "
+                                                        "helps objects with large flat parts and costs others: "
+                                                        "docs/results.md)"),
     ("--hidden-stride", "secure.hidden_stride", "train the hidden branch on every N-th step only, its loss weighted "
                                                 "N times (faster training, lower hidden fidelity; default 1)"),
     ("--hidden-finish", "secure.hidden_finish", "after the joint run, train the private heads alone for this "
