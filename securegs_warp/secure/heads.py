@@ -257,7 +257,8 @@ class PrivateHeads(nn.Module):
                         log_scaling: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Features [Nv, d] and log scalings [Nv, 6] of anchors at positions xyz [Nv, 3], with the
         grid's and the codes' values added, and log(scale_gain) to the Gaussians' part l_v[3:]."""
-        scale_shift = math.log(self.scale_gain)
+        # What adds to l_v[3:]: log(scale_gain) (a number) and the codes' scale part ([Nv, 3]).
+        scale_shifts = [math.log(self.scale_gain)] if self.scale_gain != 1.0 else []
         where = None if self.latent_grid is None and self.codes is None else self.box_position(xyz)
         if self.latent_grid is not None:
             feat = feat + self.latent_grid(where)
@@ -265,9 +266,9 @@ class PrivateHeads(nn.Module):
             code = self.codes(where)
             feat = feat + code[:, :self.feat_dim]
             if self.codes.scales:
-                scale_shift = code[:, self.feat_dim:] + scale_shift
-        if not isinstance(scale_shift, float) or scale_shift != 0.0:
-            log_scaling = torch.cat([log_scaling[:, :3], log_scaling[:, 3:] + scale_shift], dim=1)
+                scale_shifts.append(code[:, self.feat_dim:])
+        if scale_shifts:
+            log_scaling = torch.cat([log_scaling[:, :3], log_scaling[:, 3:] + sum(scale_shifts)], dim=1)
         return feat, log_scaling
 
     def box_position(self, xyz: torch.Tensor) -> torch.Tensor:
