@@ -219,6 +219,8 @@ class StegaNeRFConfig:
 # (docs/results.md, "Private codes by default").
 BOX_FRAME_DEFAULTS = {"n_hidden": 32, "width": 128, "serving": 1024, "encoding": 6, "depth": 1, "latent": 0,
                       "codes": 16384, "code_cells": 64}
+# Where the box frame's hidden Gaussians start (SecureConfig.hidden_start).
+HIDDEN_STARTS = ("surface", "centre")
 # The shares of the hidden loss's gradient that reach the public features and scalings (feature,
 # scaling) for a decoder without private codes: a small share on the features keeps the cover close
 # to plain Scaffold-GS and still lets the private heads read the hidden object from them
@@ -328,6 +330,12 @@ class SecureConfig:
         default: at low resolution it lifts an object whose large flat parts the cover's small
         anchors cannot cover and costs the others; at 1080p it cost both kinds
         (docs/results.md, "A private scale gain").
+    hidden_start: where the box frame's hidden Gaussians start: "surface" (hidden Gaussian j of every
+        serving anchor at one of k_hid points spread over the object's surface by farthest-point
+        sampling of the scene's points on it, ``PrivateHeads.start_at``) or "centre" (F_o†'s default
+        initialisation, which starts them all near the box's centre: the parts of an object far from
+        it, such as a lamp's base, then draw few Gaussians that can reach them, docs/results.md,
+        "Hidden Gaussians that start on the object's surface"). Training only: the key holds the weights.
     hidden_stride: the hidden renders are made and trained on every hidden_stride-th step only, their
         loss weighted hidden_stride times, so that the hidden loss's gradient keeps its mean over the
         run; the steps between are plain Scaffold-GS steps (plus the bit projection). Most of what a
@@ -387,6 +395,7 @@ class SecureConfig:
     hidden_eps2d: float | None = None
     hidden_scale_gain: float | None = None
     hidden_crop: bool = False
+    hidden_start: str = "surface"
     hidden_stride: int = 1
     hidden_finish: float | None = None
     finish_robust: str | None = "auto"
@@ -473,6 +482,8 @@ class SecureConfig:
     def __post_init__(self):
         if self.hidden_frame not in (None, "anchor", "box"):
             raise ValueError(f"hidden_frame must be 'anchor' or 'box', got {self.hidden_frame!r}")
+        if self.hidden_start not in HIDDEN_STARTS:
+            raise ValueError(f"hidden_start must be one of {HIDDEN_STARTS}, got {self.hidden_start!r}")
         for name in ("hidden_offsets", "hidden_width", "hidden_anchors", "hidden_depth", "hidden_stride"):
             if getattr(self, name) is not None and getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

@@ -285,6 +285,53 @@ def test_the_hidden_dilation_is_in_the_key_and_leaves_the_public_render_alone(tm
         SecureConfig(hidden_eps2d=-1.0)
 
 
+def test_farthest_points_spread_over_the_points_and_start_at_places_each_slot_on_one():
+    """farthest_points picks one point of each far cluster before a second of any; start_at makes
+    F_o†'s bias put hidden Gaussian j of an anchor at points[j] (exactly, with its weights zeroed);
+    both refuse what they cannot do."""
+    from securegs_warp.model import ScaffoldHeads
+    from securegs_warp.secure.heads import PrivateHeads, farthest_points
+
+    centres = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 5.0]])
+    clusters = (centres[:, None] + 0.01 * torch.randn(3, 50, 3)).reshape(-1, 3)
+    picked = farthest_points(clusters, 3)
+    assert sorted(torch.cdist(picked, centres).argmin(dim=1).tolist()) == [0, 1, 2]
+    assert torch.equal(farthest_points(clusters, 3), picked)  # no random draw
+    with pytest.raises(ValueError, match="cannot pick 151 of 150"):
+        farthest_points(clusters, 151)
+    heads = PrivateHeads(ScaffoldHeads(4, 2), frame="box", n_hidden=3, width=8, serving=10)
+    heads.set_box(torch.tensor([-1.0, -2.0, 0.0]), torch.tensor([1.0, 2.0, 4.0]))
+    points = torch.tensor([[0.5, -1.0, 1.0], [-0.2, 1.5, 3.0], [0.9, 0.0, 0.2]])
+    heads.start_at(points)
+    with torch.no_grad():
+        heads.offset_mlp[-1].weight.zero_()
+    raw = heads.offset_mlp(torch.randn(7, heads.offset_mlp[0].in_features)).view(7, 3, 3)
+    placed = heads.box[0] + heads.box[1] * torch.tanh(raw)
+    assert torch.allclose(placed, points.expand(7, 3, 3), atol=1e-5)
+    with pytest.raises(ValueError, match=r"one point per hidden Gaussian of an anchor, \[3, 3\]"):
+        heads.start_at(points[:2])
+    with pytest.raises(ValueError, match="needs frame='box'"):
+        PrivateHeads(ScaffoldHeads(4, 2)).start_at(points)
+    with pytest.raises(ValueError, match="hidden_start must be one of"):
+        SecureConfig(hidden_start="middle")
+
+
+def test_a_container_trained_from_the_surface_start_decodes_nearer_the_object(tmp_path):
+    """--hidden-start surface (the default) starts the hidden Gaussians on the object: after a few
+    steps they lie nearer its surface than from --hidden-start centre, where they start near the box's
+    centre."""
+    scene = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2)
+    surface = torch.as_tensor(scene.hidden_points)
+    cam = scene.test[0]
+    distance = {}
+    for start in ("surface", "centre"):
+        model, _ = _tiny_cover_key(tmp_path / start, "--hidden-start", start)
+        with torch.no_grad():
+            means = model.hidden_gaussians(cam)["means"]
+        distance[start] = float(torch.cdist(means, surface).min(dim=1).values.median())
+    assert distance["surface"] < 0.5 * distance["centre"], distance
+
+
 def test_the_scale_gain_is_in_the_key_and_multiplies_the_hidden_gaussians_scales_alone(tmp_path):
     """--hidden-scale-gain: the key records its gain, the hidden Gaussians' scales are that many
     times those of a gain of 1 (their positions, colours and the public render unchanged), a key

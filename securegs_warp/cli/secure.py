@@ -80,6 +80,9 @@ SECURE_FLAGS = (
                                                         "grow, kept in the key (default 1; at low resolution larger "
                                                         "helps objects with large flat parts and costs others: "
                                                         "docs/results.md)"),
+    ("--hidden-start", "secure.hidden_start", "box frame: where the hidden Gaussians start, surface (spread over "
+                                              "the object's surface; the default) or centre (near the box's "
+                                              "centre, as before)"),
     ("--hidden-stride", "secure.hidden_stride", "train the hidden branch on every N-th step only, its loss weighted "
                                                 "N times (faster training, lower hidden fidelity; default 1)"),
     ("--hidden-finish", "secure.hidden_finish", "after the joint run, train the private heads alone for this "

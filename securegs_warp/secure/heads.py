@@ -23,6 +23,9 @@ INSIDE_TIE_BREAK = 1e-3
 # An anchor record's reach stops this share short of the distance to the entry's nearest other
 # anchor, so that no float rounding lets an unmoved neighbour pair with the entry.
 REACH_MARGIN = 1e-3
+# ``PrivateHeads.start_at`` keeps its points this far inside the box's tanh range (a share of the
+# half-extent): at the faces F_o†'s gradient vanishes.
+START_INSIDE = 0.95
 
 
 # The cells of a key's private codes, per axis of the contracted box frame, unless the key names its
@@ -37,6 +40,19 @@ def contract(where: torch.Tensor) -> torch.Tensor:
     box's inside spans the middle half, and the serving anchors outside it keep distinct places
     instead of piling onto a border."""
     return where / (1.0 + where.abs())
+
+
+def farthest_points(points: torch.Tensor, count: int) -> torch.Tensor:
+    """[count, 3]: ``count`` of the points [M, 3] spread over them by farthest-point sampling, from
+    the one farthest from their mean (deterministic: no random draw)."""
+    if not 1 <= count <= len(points):
+        raise ValueError(f"cannot pick {count} of {len(points)} points")
+    chosen = [int((points - points.mean(0)).norm(dim=1).argmax())]
+    distance = (points - points[chosen[0]]).norm(dim=1)
+    for _ in range(count - 1):
+        chosen.append(int(distance.argmax()))
+        distance = torch.minimum(distance, (points - points[chosen[-1]]).norm(dim=1))
+    return points[chosen]
 
 
 class LatentGrid(nn.Module):
@@ -243,6 +259,21 @@ class PrivateHeads(nn.Module):
             return centre + half * torch.tanh(raw) - inputs.xyz[:, None, :].detach()
         raw = self.offset_mlp(torch.cat([inputs.feat, inputs.ob_view], dim=1)).view(-1, self.n_offsets, 3)
         return raw * inputs.scaling[:, None, :3] if self.scale_offsets else raw
+
+    @torch.no_grad()
+    def start_at(self, points: torch.Tensor) -> None:
+        """Box frame: set F_o†'s last bias so that hidden Gaussian j of every anchor starts at
+        points[j] ([k_hid, 3], world units, inside the box), where F_o†'s default initialisation
+        starts them all near the box's centre. The rest of F_o†'s initial weights scatters each
+        slot's Gaussians around its point, anchor by anchor."""
+        if self.frame != "box" or self.offset_mlp is None:
+            raise ValueError("start_at places the box frame's hidden Gaussians: it needs frame='box' and F_o†")
+        if points.shape != (self.n_offsets, 3):
+            raise ValueError(f"start_at needs one point per hidden Gaussian of an anchor, [{self.n_offsets}, 3]; "
+                             f"got {list(points.shape)}")
+        # Inside the box's tanh range, short of the saturated faces.
+        inside = ((points.to(self.box) - self.box[0]) / self.box[1]).clamp(-START_INSIDE, START_INSIDE)
+        self.offset_mlp[-1].bias.copy_(torch.atanh(inside).reshape(-1))
 
     @property
     def anchor_source(self):

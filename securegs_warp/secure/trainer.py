@@ -26,7 +26,7 @@ from ..train.schedules import exponential_lr
 from ..train.trainer import ScaffoldTrainer
 from . import hidden_graph
 from .crop import Crop, box_crop
-from .heads import PrivateHeads
+from .heads import PrivateHeads, farthest_points
 from .keyed_bits import KeyedBitDecoder, new_seed
 from .model import SecureModel
 from .payload import Payload, build_payload, message_string, parse_secrets, recorded_payload
@@ -174,6 +174,12 @@ class SecureTrainer(ScaffoldTrainer):
             lo, hi = np.asarray(bounds, dtype=np.float32)
             margin = BOX_MARGIN * float(np.linalg.norm(hi - lo))  # room for splats that reach past the surface
             private.set_box(lo - margin, hi + margin)
+            if self.secure.hidden_start == "surface":
+                points = getattr(self.scene, "hidden_points", None)
+                if points is None:
+                    raise ValueError("hidden_start 'surface' starts the hidden Gaussians on the object's surface: it "
+                                     "needs a scene that knows points on it (or hidden_start 'centre')")
+                private.start_at(farthest_points(torch.as_tensor(points, dtype=torch.float32), private.n_offsets))
         return private
 
     def head_groups(self) -> dict:
