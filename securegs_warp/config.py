@@ -327,9 +327,9 @@ class SecureConfig:
         in training and whenever the key renders; None: the public render's ``RasterOptions.eps2d``.
     hidden_scale_gain: how many times its anchor's scale a hidden Gaussian may grow
         (``PrivateHeads`` scale_gain, saved in the key); None: 1, Scaffold-GS's bound. Not the
-        default: at low resolution it lifts an object whose large flat parts the cover's small
-        anchors cannot cover and costs the others; at 1080p it cost both kinds
-        (docs/results.md, "A private scale gain").
+        default: at low resolution it lifted an object whose large flat parts the cover's small
+        anchors could not cover and cost the others; at 1080p it cost both kinds (docs/results.md,
+        "A private scale gain", measured before ``hidden_start`` "surface").
     hidden_start: where the box frame's hidden Gaussians start: "surface" (hidden Gaussian j of every
         serving anchor at one of k_hid points spread over the object's surface by farthest-point
         sampling of the scene's points on it, ``PrivateHeads.start_at``) or "centre" (F_o†'s default
