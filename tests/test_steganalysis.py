@@ -258,8 +258,13 @@ def _tiny_cover_key(tmp_path, *flags):
     return open_container(out / "public", out / "key.safetensors")
 
 
+def _tiny_scene():
+    """The scene ``_tiny_cover_key`` trains on (TINY's size and views)."""
+    return make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2)
+
+
 def _tiny_view():
-    return make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2).test[0]
+    return _tiny_scene().test[0]
 
 
 def test_the_hidden_dilation_is_in_the_key_and_leaves_the_public_render_alone(tmp_path):
@@ -320,7 +325,7 @@ def test_a_container_trained_from_the_surface_start_decodes_nearer_the_object(tm
     """--hidden-start surface (the default) starts the hidden Gaussians on the object: after a few
     steps they lie nearer its surface than from --hidden-start centre, where they start near the box's
     centre."""
-    scene = make_synthetic_scene(hidden="mug", level="object", width=40, height=30, n_train=6, n_test=2)
+    scene = _tiny_scene()
     surface = torch.as_tensor(scene.hidden_points)
     cam = scene.test[0]
     distance = {}
