@@ -13,7 +13,9 @@ to front, recovering the transmittance from the final one. A Gaussian's gradient
 the pixels of a CUDA warp with register shuffles (skipped when no lane touched it) and added to
 global memory one value a lane (``gradient_scatter``), into one [N, 6 + C (+1)] table that a second
 kernel unpacks into the per-field gradients: a block-wide reduction per Gaussian costs several
-times more, and one lane adding every value serialises the atomics.
+times more, one lane adding every value serialises the atomics, and summing a tile's warps in
+shared memory first (one global add a Gaussian a batch) measured no faster (docs/results.md,
+"Gradient sums in shared memory").
 
 Per-pixel rule (gsplat 1.5): centre at +0.5; σ = ½(a·dx² + c·dy²) + b·dx·dy, skipped if σ < 0;
 α = min(alpha_max, o·e^{−σ}), skipped if α < alpha_min; stop *before* a Gaussian that would bring
