@@ -20,22 +20,12 @@ non-finite input): a training loop that asks can drop the step instead of stoppi
 Two renders of the same shape may be in flight at once (a public and a hidden render before one
 backward): an entry is leased from forward until its backward ran or its autograd graph was freed,
 and a busy entry makes the pool build another.
-
-A loop that renders the very same per-Gaussian tensors again and again, updating them in place (a
-plain 3DGS loop; Scaffold-GS decodes new ones every step), need not have them copied in: at the
-second render in a row of the same tensors (the same objects at the same addresses) the pool binds
-an entry to them, whose graphs read them where they are (``BINDABLE``). The entry holds them, so
-their memory outlives its graphs; a render of other tensors takes an unbound entry, and the next
-binding of the shape drops the idle entries before it. A bound input changed in place between a
-render's forward and its backward would give the backward other values than the forward's: that
-raises, as torch's saved tensors do.
 """
 from __future__ import annotations
 
 import collections
 import functools
 import gc
-import weakref
 
 import torch
 import warp as wp
@@ -54,25 +44,14 @@ SLACK = 4096
 MAX_SHAPES = 4
 
 _POOL: collections.OrderedDict[tuple, list[_Captured]] = collections.OrderedDict()
-# The inputs a bound entry reads in place: the per-Gaussian ones. The camera and the background are
-# a few values, copied always.
-BINDABLE = ("means", "quats", "scales", "opacities", "colors", "color_table")
-# Per shape key: the last render's bindable inputs, as (weak reference, address) pairs.
-_LAST: dict[tuple, list] = {}
 
 
 class _Captured:
-    def __init__(self, inputs: dict, checked: dict, width: int, height: int, opts: RasterOptions, bind: bool = False):
-        # The caller's tensors this entry reads in place (``bind``), by name, with their addresses.
-        self.bound = {name: inputs[name] for name in BINDABLE} if bind else {}
-        self.addresses = {name: t.data_ptr() for name, t in self.bound.items()}
-        self.versions: list[int] = []  # the bound inputs' versions at the last forward
-        self.static, self.names, self.checks = _static_inputs(inputs, checked, self.bound)
-        # The inputs each forward copies in: all but the bound ones and a colour table that is the
-        # colours themselves (the same for every render of the entry: the table's storage is one of
-        # its options).
-        self.copied = [name for name, t in inputs.items()
-                       if name not in self.bound and (name != "color_table" or t is not inputs["colors"])]
+    def __init__(self, inputs: dict, checked: dict, width: int, height: int, opts: RasterOptions):
+        self.static, self.names, self.checks = _static_inputs(inputs, checked)
+        # The inputs each forward copies in: all but a colour table that is the colours themselves
+        # (the same for every render of the entry: the table's storage is one of its options).
+        self.copied = [name for name, t in inputs.items() if name != "color_table" or t is not inputs["colors"]]
         self.static_copied = [self.static[name] for name in self.copied]
         self.plan = RenderPlan(self.static, width, height, opts)
         self.cuda = self.static["means"].device.type == "cuda"
@@ -168,14 +147,8 @@ class _Captured:
                     "capacity has grown for the next render); check info['complete'] where the scene changes "
                     "this much, or render with capture=False")
 
-    def reads(self, inputs: dict) -> bool:
-        """Whether this entry is bound to ``inputs``' per-Gaussian tensors (which it then reads in place)."""
-        return bool(self.bound) and all(inputs[name] is t and t.data_ptr() == self.addresses[name]
-                                        for name, t in self.bound.items())
-
     def forward(self, inputs: dict) -> tuple[list, _Render]:
         self.check_pending()
-        self.versions = [t._version for t in self.bound.values()]
         # One multi-tensor copy (a launch or two on CUDA) rather than one a tensor.
         torch._foreach_copy_(self.static_copied, [inputs[name] for name in self.copied])
         self._run("forward", self._forward_ops)
@@ -203,10 +176,6 @@ class _Captured:
     def backward(self, grads, means2d_grad: torch.Tensor) -> list:
         """The inputs' gradients (fresh tensors) from the output gradients (image, alpha, depth; None
         for an output the loss does not use); adds dL/d means2d into ``means2d_grad``."""
-        if [t._version for t in self.bound.values()] != self.versions:
-            raise RuntimeError("an input of a captured render (means, quats, scales, opacities or colors) was "
-                               "modified in place between the render and its backward, which would read the new "
-                               "values; render again after the change")
         given = []
         for buffer, g in zip(self.cotangents, grads):
             if g is None:
@@ -259,17 +228,16 @@ def settle() -> None:
                 entry.check_pending()
 
 
-def _static_inputs(inputs: dict, checked: dict, bound: dict):
-    """The tensors a captured entry's graphs read for ``inputs``: its copies, and the ``bound``
-    inputs themselves (key → tensor); the names of the ``checked`` inputs (error name → key of
-    ``inputs``) in the order of their status slots; and the launches of ``flag_nonfinite`` that
-    check them: [(values, segment ends, first slot)].
+def _static_inputs(inputs: dict, checked: dict):
+    """A captured entry's copies of ``inputs`` (the buffers its graphs read), the names of the
+    ``checked`` inputs (error name → key of ``inputs``) in the order of their status slots, and the
+    launches of ``flag_nonfinite`` that check them: [(values, segment ends, first slot)].
 
-    The checked float32 copies share one buffer, each padded with zeros to whole vec4s, so that one
+    The checked float32 inputs share one buffer, each padded with zeros to whole vec4s, so that one
     launch reading four values a thread checks them all (segment s, ending at vec4 ends[s], is slot
-    1 + s); a bound input or a float16 colour table is checked by a launch of its own."""
+    1 + s); a float16 colour table is checked by a launch of its own."""
     device = inputs["means"].device
-    wide = [name for name, key in checked.items() if inputs[key].dtype == torch.float32 and key not in bound]
+    wide = [name for name, key in checked.items() if inputs[key].dtype == torch.float32]
     names = tuple(wide) + tuple(name for name in checked if name not in wide)
     sizes = [-(-inputs[checked[name]].numel() // 4) for name in wide]  # in vec4s
     arena = torch.zeros(max(sum(sizes), 1), 4, device=device, dtype=torch.float32)
@@ -279,16 +247,14 @@ def _static_inputs(inputs: dict, checked: dict, bound: dict):
         static[checked[name]] = arena.view(-1)[4 * start:4 * start + t.numel()].view(t.shape).copy_(t)
         start += size
     for key, t in inputs.items():
-        if key in bound:
-            static[key] = t
-        elif key not in static:
+        if key not in static:
             static[key] = t.detach().clone()
     if inputs["color_table"] is inputs["colors"]:
         static["color_table"] = static["colors"]
     ends = torch.tensor(sizes, dtype=torch.int32).cumsum(0, dtype=torch.int32).to(device)
     checks = [(wp.from_torch(arena, dtype=wp.vec4), wp.from_torch(ends, dtype=wp.int32), 1)] if wide else []
     for slot, name in enumerate(names[len(wide):], 1 + len(wide)):
-        t = static[checked[name]].detach()  # a bound input may need a gradient: none is made here
+        t = static[checked[name]]
         checks.append((wp.from_torch(t.reshape(-1), dtype=wp.dtype_from_torch(t.dtype)),
                        wp.from_torch(torch.tensor([t.numel()], dtype=torch.int32, device=device), dtype=wp.int32), slot))
     return static, names, checks
@@ -316,28 +282,10 @@ def _acquire(inputs: dict, checked: dict, width: int, height: int, opts: RasterO
         idle = next((k for k, v in _POOL.items() if k != key and not any(e.busy for e in v)), None)
         if idle is None:
             break
-        _LAST.pop(idle, None)
         for entry in _POOL.pop(idle):  # an evicted entry's last render is still checked
             entry.check_pending(grow=False)
-    free = [entry for entry in entries if not entry.busy]
-    for entry in free:
-        if entry.reads(inputs):
-            return entry
-    last, _LAST[key] = _LAST.get(key), [(weakref.ref(inputs[name]), inputs[name].data_ptr()) for name in BINDABLE]
-    repeated = last is not None and all(ref() is inputs[name] and address == inputs[name].data_ptr()
-                                        for name, (ref, address) in zip(BINDABLE, last))
-    # Inside a caller's CUDA graph capture no entry can be built (it reads the intersection count
-    # on the host): a render there takes a free one, which the caller's warm-up made.
-    if repeated and not (means.device.type == "cuda" and torch.cuda.is_current_stream_capturing()):
-        # The shape's free entries go: an unbound one would copy in what the new entry reads in
-        # place, and a bound one holds tensors that are no longer rendered.
-        for entry in free:
-            entry.check_pending(grow=False)
-            entries.remove(entry)
-        entries.append(_Captured(inputs, checked, width, height, opts, bind=True))
-        return entries[-1]
-    for entry in free:
-        if not entry.bound:
+    for entry in entries:
+        if not entry.busy:
             return entry
     entries.append(_Captured(inputs, checked, width, height, opts))
     return entries[-1]

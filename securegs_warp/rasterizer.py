@@ -82,9 +82,8 @@ class RasterOptions:
     # first render's count with headroom). A later render that needs more lacks intersections, which
     # its info["complete"] tells; the next call of its pooled entry grows the capacity, and raises if
     # nobody asked. One with non-finite inputs raises there, or at complete()
-    # (securegs_warp/raster_graph.py). Same images and gradients as eager otherwise. The same
-    # per-Gaussian tensors rendered again are read in place, not copied in. On the CPU it runs the
-    # same fixed-capacity launches without a graph.
+    # (securegs_warp/raster_graph.py). Same images and gradients as eager otherwise. On the CPU it
+    # runs the same fixed-capacity launches without a graph.
     capture: bool = False
     # CUDA launch shape only (results do not depend on it): threads per block of the forward and
     # backward blending kernels; a block owns that many pixels of a tile and shares each batch of

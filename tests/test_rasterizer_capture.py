@@ -1,7 +1,6 @@
 """``RasterOptions.capture``: the fixed-capacity render replayed from Warp graphs (CUDA) or run
 directly (CPU) gives the eager op's images, outputs and gradients; a non-finite input raises; an
-overflow of the capacity grows it, and raises where the caller did not ask ``info["complete"]``;
-the same tensors rendered again are read in place, and changing them before the backward raises."""
+overflow of the capacity grows it, and raises where the caller did not ask ``info["complete"]``."""
 import pytest
 import torch
 
@@ -46,10 +45,8 @@ def assert_same(captured, eager):
 @pytest.fixture(autouse=True)
 def fresh_pool():
     raster_graph._POOL.clear()
-    raster_graph._LAST.clear()
     yield
     raster_graph._POOL.clear()
-    raster_graph._LAST.clear()
 
 
 @pytest.mark.parametrize("options", [{}, {"tile_size": 8, "render_depth": "accumulated"},
@@ -141,9 +138,8 @@ def test_capacity_overflow_told_by_complete_then_grown():
     assert not torch.equal(overflowed.cpu(), eager[0][0])  # it lacked intersections
     (entry,) = [e for entries in raster_graph._POOL.values() for e in entries]
     capacity = entry.plan.capacity
-    # Asked, the overflow does not raise: the next render of the shape (other tensors, which the
-    # entry copies in) grows the capacity, is whole and says so.
-    leaves = {name: t.clone() for name, t in leaves.items()}
+    # Asked, the overflow does not raise: the next render of the shape grows the capacity, is whole
+    # and says so.
     _, _, info = rasterize(**leaves, **args)
     assert info["complete"]() is True
     assert [e for entries in raster_graph._POOL.values() for e in entries] == [entry]
@@ -256,71 +252,3 @@ def test_more_intersections_than_the_sort_holds_are_refused(capture, monkeypatch
     monkeypatch.setattr("securegs_warp.rasterizer.MAX_SORTED", 64)
     with pytest.raises(ValueError, match="tile intersections exceed what the sort can hold"):
         render(random_scene(4, n=60), capture=capture, backward=False)
-
-
-def _loop_render(leaves, scene, capture, seed=5):
-    """One step of a loop over ``leaves`` (rendered, backpropagated, gradients taken and cleared):
-    the image and the gradients of DIFF_INPUTS."""
-    image, alpha, _ = rasterize(**leaves, viewmat=scene.viewmat.to(TEST_DEVICE), K=scene.K.to(TEST_DEVICE),
-                                width=scene.width, height=scene.height, capture=capture)
-    g = torch.Generator().manual_seed(seed)
-    ((image * torch.randn(image.shape, generator=g).to(TEST_DEVICE)).sum()
-     + (alpha * torch.randn(alpha.shape, generator=g).to(TEST_DEVICE)).sum()).backward()
-    grads = [leaves[name].grad.detach().cpu() for name in DIFF_INPUTS]
-    for t in leaves.values():
-        t.grad = None
-    return image.detach().cpu(), grads
-
-
-def _pool():
-    return [e for entries in raster_graph._POOL.values() for e in entries]
-
-
-def test_the_same_tensors_rendered_again_are_read_in_place():
-    """A loop that renders the same tensors and updates them in place, as an optimizer does: from its
-    second render the entry reads them where they are, and every render sees the update."""
-    scene = random_scene(11, n=70)
-    leaves = {name: getattr(scene, name).detach().clone().to(TEST_DEVICE).requires_grad_(True)
-              for name in DIFF_INPUTS}
-    _loop_render(leaves, scene, True)
-    assert not any(e.bound for e in _pool())
-    _loop_render(leaves, scene, True)
-    (entry,) = _pool()
-    per_gaussian = ("means", "quats", "scales", "opacities", "colors")
-    assert set(entry.bound) == set(raster_graph.BINDABLE)
-    assert all(entry.bound[name] is leaves[name] and entry.static[name] is leaves[name] for name in per_gaussian)
-    for step in range(2):
-        with torch.no_grad():
-            leaves["means"] += 0.01
-            leaves["colors"] *= 0.9
-        image, grads = _loop_render(leaves, scene, True)
-        assert _pool() == [entry]
-        fresh = {name: t.detach().clone().requires_grad_(True) for name, t in leaves.items()}
-        eager_image, eager_grads = _loop_render(fresh, scene, False)
-        assert torch.equal(image, eager_image)
-        for x, y in zip(grads, eager_grads):
-            assert_gradients_close(x, y)
-    # Other tensors of the shape take an entry that copies them in; the bound one stays theirs.
-    others = {name: t.detach().clone().requires_grad_(True) for name, t in leaves.items()}
-    with torch.no_grad():
-        others["means"] -= 0.02
-    image, _ = _loop_render(others, scene, True)
-    assert torch.equal(image, _loop_render({n: t.detach().clone().requires_grad_(True) for n, t in others.items()},
-                                           scene, False)[0])
-    assert entry in _pool() and len(_pool()) == 2 and all(entry.bound[name] is leaves[name] for name in per_gaussian)
-
-
-def test_a_bound_input_changed_before_the_backward_raises():
-    scene = random_scene(11, n=70)
-    leaves = {name: getattr(scene, name).detach().clone().to(TEST_DEVICE).requires_grad_(True)
-              for name in DIFF_INPUTS}
-    for _ in range(2):
-        _loop_render(leaves, scene, True)
-    image, _, _ = rasterize(**leaves, viewmat=scene.viewmat.to(TEST_DEVICE), K=scene.K.to(TEST_DEVICE),
-                            width=scene.width, height=scene.height, capture=True)
-    with torch.no_grad():
-        leaves["scales"] *= 1.1
-    with pytest.raises(RuntimeError, match="modified in place between the render and its backward"):
-        image.sum().backward()
-    # The entry was released: the loop goes on.
-    _loop_render(leaves, scene, True)

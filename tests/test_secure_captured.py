@@ -23,10 +23,8 @@ from securegs_warp.train import TrainConfig
 def fresh_pool():
     """Each test sees only its own captured renders."""
     raster_graph._POOL.clear()
-    raster_graph._LAST.clear()
     yield
     raster_graph._POOL.clear()
-    raster_graph._LAST.clear()
 
 
 def _trainer(device, capture=True, serving=60, robust=None, finish=0.0, latent=0, codes=0, code_scales=False):
