@@ -14,8 +14,8 @@ from pathlib import Path
 import torch
 
 from securegs_warp.cli.common import quiet_warp
-from securegs_warp.config import BOX_FRAME_DEFAULTS
-from securegs_warp.model import ScaffoldHeads
+from securegs_warp.config import BOX_FRAME_DEFAULTS, HeadsConfig
+from securegs_warp.scaffold_model import build_heads
 from securegs_warp.secure.container import PLAIN_KEY, KeyViews, open_container
 from securegs_warp.secure.heads import PrivateHeads
 
@@ -30,10 +30,12 @@ for run in (Path(a) for a in sys.argv[1:] if a != "--init"):
 if "--init" in sys.argv:
     torch.manual_seed(0)
     options = {k: BOX_FRAME_DEFAULTS[k] for k in ("n_hidden", "width", "serving", "encoding")}
-    heads = PrivateHeads(ScaffoldHeads(32, 10), frame="box", **options)
+    public = HeadsConfig()
+    heads = PrivateHeads(build_heads(public), frame="box", **options)
     with torch.no_grad():
         where = torch.rand(BOX_FRAME_DEFAULTS["serving"], 3) * 4 - 2
-        raw = heads.offset_mlp(torch.cat([0.1 * torch.randn(len(where), 32), heads.encode(where)], dim=1))
+        feat = 0.1 * torch.randn(len(where), public.feat_dim)
+        raw = heads.offset_mlp(torch.cat([feat, heads.encode(where)], dim=1))
     offset = torch.tanh(raw).abs()
     print(f"F_o† at initialisation: raw std {float(raw.std()):.3f}; 90% of the offsets' coordinates within "
           f"{float(offset.quantile(0.9)):.3f} of the half-extent from the box's centre")

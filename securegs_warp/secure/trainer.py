@@ -175,7 +175,7 @@ class SecureTrainer(ScaffoldTrainer):
             margin = BOX_MARGIN * float(np.linalg.norm(hi - lo))  # room for splats that reach past the surface
             private.set_box(lo - margin, hi + margin)
             if self.secure.hidden_start == "surface":
-                points = getattr(self.scene, "hidden_points", None)
+                points = self.scene.hidden_points
                 if points is None:
                     raise ValueError("hidden_start 'surface' starts the hidden Gaussians on the object's surface: it "
                                      "needs a scene that knows points on it (or hidden_start 'centre')")
