@@ -167,9 +167,9 @@ class RasterOptions:
         The tile is 8 on the CPU, where each pixel's thread walks its tile's list of Gaussians and
         smaller tiles give shorter lists (faster there), and 16 on CUDA (gsplat's default): there
         tiles of 8 blend faster too, but binning a trained scene's large Gaussians to them costs
-        more than that saves (a 1080p training measured 14% slower; docs/results.md, "Gradient sums
-        in shared memory, and tiles of 8 on CUDA"). This is the one place the rule is written. Raises ValueError as ``RasterOptions`` does, and for an
-        unknown field (``UnknownOptionError``, naming it and listing the valid ones).
+        more than that saves (docs/results.md, "Gradient sums in shared memory, and tiles of 8 on
+        CUDA"). This is the one place the rule is written. Raises ValueError as ``RasterOptions``
+        does, and for an unknown field (``UnknownOptionError``, naming it and listing the valid ones).
 
         >>> RasterOptions.for_device("cpu").tile_size, RasterOptions.for_device("cuda").tile_size
         (8, 16)
