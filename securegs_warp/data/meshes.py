@@ -328,7 +328,7 @@ def _file_colors(loaded) -> np.ndarray | None:
         return None
     material = visual.material
     image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
-    if image is not None and image.size[0] * image.size[1] <= 4 and len(set(image.getdata())) == 1:
+    if image is not None and image.size[0] * image.size[1] <= 4 and len(image.getcolors()) == 1:
         return None
     if image is not None:
         try:
