@@ -1,12 +1,12 @@
 """Shared test set-up: key seeds and random messages drawn from a seeded generator.
 
 The product draws a bit decoder's seed (``secrets.token_hex`` in ``keyed_bits.new_seed``) and an
-unspecified message (``secrets.randbits`` in ``payload``) from the operating system's secure source, so every run of the
-suite would otherwise test other keys. Several tests train a few hundred anchors, where a key can
-leave a bit with few voters, and a cut then with none (a bit without voters reads undecided, which
-is correct behaviour and counted by ``bits_without_voters``). Seeded draws make a failure reproduce
-on any machine instead of turning up once in a few hundred runs. Successive draws still differ, so
-tests of two keys still see two keys.
+unspecified message (``secrets.randbits`` in ``payload``) from the operating system's secure source,
+so every run of the suite would otherwise test other keys. Several tests train a few hundred
+anchors, where a key can leave a bit with few voters, and a cut then with none (a bit without voters
+reads undecided, which is the design's behaviour and counted by ``bits_without_voters``). Seeded
+draws make a failure reproduce on any machine instead of turning up once in a few hundred runs.
+Successive draws still differ, so tests of two keys still see two keys.
 """
 import random
 

@@ -319,12 +319,13 @@ def test_a_message_longer_than_the_grid_carries_is_warned_of():
 
 
 def test_bits_are_read_from_the_anchor_features(hidden_scene):
-    """The bit decoder has no bias, so it cannot output the message as a constant of its own: blank
-    anchor features decode nothing, and the message is read from the features. Every anchor votes,
-    so after losing half of them (random pruning, as in the paper's robustness study) every bit that
-    keeps a voter still reads right, and one left without voters reads undecided, never wrong. The
-    keyed grid deals cells to bits unevenly (a 16-voxel grid over ~600 anchors gives some bit only a
-    handful of voters); a 4-voxel grid gives each bit many cells, so the cut leaves most bits voters."""
+    """The bit decoder has no bias, so it cannot output the message as a constant of its own: blank anchor
+    features decode nothing, and the message is read from the features. Every anchor votes, so after
+    losing half of them (random pruning, as in the paper's robustness study) every bit that keeps a
+    voter still reads right, and one left without voters votes 0.5 (undecided), never the wrong bit.
+    The keyed grid deals cells to bits unevenly (a 16-voxel grid over ~600 anchors gives some bit
+    only a handful of voters); a 4-voxel grid gives each bit many cells, so the cut leaves most bits
+    voters."""
     config = TrainConfig(iterations=40, raster=CPU_RASTER, densify=False)
     trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:16", bit_cell_voxels=4.0))
     for _ in range(config.iterations):
