@@ -17,7 +17,10 @@ Per case, in OUT/NAME (NAME = object_placement_sSEED), and per variant (``--vari
     python scripts/robustness.py OUT/NAME/hide_V --attacks ATTACKS --draws DRAWS --out OUT/NAME/robustness_V \\
         [--without-record]
 Then OUT/study.md and OUT/study.json: one row per case and variant, and each variant's detection AUC
-(``steganalysis.auc_by_model``, as ``scripts/audit_auc.py`` computes it) over all cases and per placement.
+(``steganalysis.auc_by_model``, as ``scripts/audit_auc.py`` computes it) over all cases and per placement;
+and per case OUT/NAME/anchor_clouds.png: the anchors near the hidden object, from above and from the side,
+of the plain model and each variant, beside the hidden surface that the first variant's key decodes (the
+audit's measure of the leak); it needs matplotlib (``pip install -e ".[plots]"``).
 ``--report`` (the same arguments) runs nothing and tables what the folders hold, for a study cut
 short (a lease that ended): its rows mark a sweep that had not ended, and its AUCs take the cases
 that have every variant's row.
@@ -38,12 +41,16 @@ import sys
 import threading
 from pathlib import Path
 
+import torch
+
 from securegs_warp.compare import BASELINE, read_run_anchors
 from securegs_warp.data.meshes import HIDDEN_OBJECTS, MESH_SUFFIXES, UP_AXES
 from securegs_warp.data.synthetic import PLACEMENTS, SCENES
 from securegs_warp.io.atomic import atomic_write
 from securegs_warp.robustness import SWEEP
-from securegs_warp.secure.steganalysis import auc_by_model
+from securegs_warp.secure.container import KeyViews, open_container
+from securegs_warp.secure.security import plot_anchor_clouds
+from securegs_warp.secure.steganalysis import auc_by_model, hidden_surface
 
 # The variant without extra flags; its folders and files carry no suffix.
 DEFAULT = "default"
@@ -253,6 +260,27 @@ def study_aucs(cases: list[dict], out: Path, variants) -> dict:
     return aucs
 
 
+def draw_clouds(case: dict, out: Path, variants) -> Path | None:
+    """OUT/NAME/anchor_clouds.png of a case whose plain model and containers are trained (None where
+    they are not, or the key decodes no hidden surface): the plain model's anchors and each variant's
+    around the surface the first variant's key decodes. ImportError without matplotlib."""
+    run = out / case["name"]
+    folders = {"plain Scaffold-GS": run / "plain", **{v: run / f"hide{suffix(v)}" for v in variants}}
+    if not all((f / "metrics.json").is_file() for f in folders.values()):
+        return None
+    first = run / f"hide{suffix(next(iter(variants)))}"
+    model, meta = open_container(first / "public", first / "key.safetensors", device="cpu")
+    if not model.renders_hidden:
+        return None
+    with torch.no_grad():
+        surface, _ = hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
+    if not len(surface):
+        return None
+    clouds = {name: read_run_anchors(folder)[2] for name, folder in folders.items()}
+    plot_anchor_clouds(run / "anchor_clouds.png", clouds, surface)
+    return run / "anchor_clouds.png"
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", action="append", required=True, help="OBJECT:PLACEMENT:SEED[:UP], repeatable")
@@ -320,6 +348,13 @@ def main():
     data = json.dumps({"args": vars(args), "rows": table_rows, "aucs": aucs, "missing": missing}, indent=1).encode()
     atomic_write(out / "study.json", lambda f: f.write(data))
     print(table)
+    try:
+        drawn = [draw_clouds(c, out, variants) for c in cases]
+    except ImportError:
+        print("no anchor-cloud pictures: matplotlib is not installed (pip install -e \".[plots]\")")
+        return
+    for path in filter(None, drawn):
+        print(f"wrote {path}")
 
 
 def run_cases(cases: list[dict], out: Path, wanted: dict, flags: list[str], variants: dict, sweep: dict,

@@ -1,5 +1,6 @@
 """scripts/hiding_study.py end to end on the CPU at a toy budget: two cases and two variants in the
-garden, the table and the AUCs, a rerun that reuses what is done and resumes what is not, and the settings guard."""
+garden, the table and the AUCs, the anchor-cloud pictures, a rerun that reuses what is done and
+resumes what is not, and the settings guard."""
 import json
 import subprocess
 import sys
@@ -37,6 +38,12 @@ def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path
     assert "| mug_stand_s0 | rdo |" in (tmp_path / "study.md").read_text()
     # A sweep counts as done by its marker, written when it ended (its JSON grows attack by attack).
     assert (tmp_path / "mug_stand_s0" / "robustness.done").is_file()
+    try:  # the anchor-cloud pictures need the plots extra; without it the study says so and ends well
+        import matplotlib  # noqa: F401
+    except ImportError:
+        assert "no anchor-cloud pictures: matplotlib is not installed" in done.stdout
+    else:
+        assert all((tmp_path / case / "anchor_clouds.png").is_file() for case in ("mug_stand_s0", "pawn_sink_s1"))
 
     plain = tmp_path / "mug_stand_s0" / "plain" / "metrics.json"
     before = plain.stat().st_mtime_ns
