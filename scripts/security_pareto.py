@@ -10,6 +10,7 @@ import argparse
 import json
 
 from securegs_warp.compare import BASELINE, density_ratio
+from securegs_warp.io.atomic import save_figure
 
 
 def main():
@@ -43,7 +44,7 @@ def main():
     ax.set_ylabel("hidden PSNR (dB)")
     ax.set_title(args.title + " (red squares: paper's RDO; blue: cover mode; dashed: goal 1.1)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(args.out, dpi=110)
+    save_figure(fig, args.out, dpi=110)
 
 
 if __name__ == "__main__":

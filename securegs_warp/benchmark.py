@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import io
 import math
 import os
 import statistics
@@ -43,6 +44,7 @@ from typing import Callable
 import torch
 
 from . import reference
+from .io.atomic import atomic_write, save_figure
 from .raster_cases import reference_kwargs, relative_error
 from .rasterizer import RasterOptions, check_option_names, rasterize, resolve_options
 
@@ -723,20 +725,20 @@ def plot(rows, path):
     fig.tight_layout()
     for ax, labels, points in labelled:
         place_labels(ax, labels, points)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
 def write(rows, out, title):
     """accuracy_vs_time.csv, .md and .png (``plot``; needs matplotlib) in ``out``; returns the markdown."""
     os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, "accuracy_vs_time.csv"), "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns(rows))
-        writer.writeheader()
-        writer.writerows(rows)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns(rows))
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write(os.path.join(out, "accuracy_vs_time.csv"), lambda f: f.write(text.getvalue().encode()))
     table = markdown(rows, title)
-    with open(os.path.join(out, "accuracy_vs_time.md"), "w") as f:
-        f.write(table)
+    atomic_write(os.path.join(out, "accuracy_vs_time.md"), lambda f: f.write(table.encode()))
     plot(rows, os.path.join(out, "accuracy_vs_time.png"))
     return table
 

@@ -9,7 +9,6 @@ the cover against the scene's held-out views.
 from __future__ import annotations
 
 import copy
-import io
 import json
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from .attacks import Attack, AttackContext, apply_attacks
 from .config import TrainConfig
 from .data import SceneData
 from .evaluation import image_metrics
-from .io.atomic import atomic_write
+from .io.atomic import atomic_write, save_figure
 from .scaffold_model import ScaffoldModel
 from .secure.container import KeyViews
 from .secure.model import SecureModel
@@ -248,8 +247,6 @@ def plot_sweep(path: Path, rows: list[dict]) -> None:
                 ax.set_ylabel(ylabel)
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100)
-    plt.close(fig)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda f: f.write(buffer.getvalue()))
+    save_figure(fig, path, dpi=100)
+    plt.close(fig)

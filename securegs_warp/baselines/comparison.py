@@ -32,7 +32,7 @@ from ..attacks import AttackContext, parse_attacks
 from ..compare import release_mb
 from ..config import SecureConfig, StegaNeRFConfig, TrainConfig
 from ..gaussians.attacks import attack_gaussians
-from ..io.atomic import atomic_write
+from ..io.atomic import atomic_write, save_figure
 from ..robustness import attacked_copy
 from ..secure import SecureTrainer
 from ..secure.security import exposure
@@ -373,5 +373,5 @@ def plot(path: Path, rows: list[dict]) -> None:
         ax.set_xticklabels(names, rotation=20, fontsize=8)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

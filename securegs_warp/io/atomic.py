@@ -56,6 +56,11 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[BinaryIO], None]) ->
         writer(f)
 
 
+def save_figure(fig, path: str | os.PathLike, dpi: int) -> None:
+    """A matplotlib figure as a PNG at ``path``, atomically (the caller closes the figure)."""
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
+
+
 @contextlib.contextmanager
 def atomic_folder(path: str | os.PathLike) -> Iterator[Path]:
     """Build a folder's content in a new hidden folder; on a clean exit it replaces ``path`` whole.

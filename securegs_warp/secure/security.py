@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from sklearn.neighbors import NearestNeighbors
 
+from ..io.atomic import save_figure
+
 
 def hidden_only_surface(hidden_points: np.ndarray, scene_points: np.ndarray, radius: float) -> np.ndarray:
     """Hidden surface samples [M', 3] farther than ``radius`` from every scene point."""
@@ -65,5 +67,5 @@ def plot_anchor_clouds(path, clouds: dict[str, np.ndarray], hidden_points: np.nd
             ax.set_xticks([])
             ax.set_yticks([])
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)

@@ -16,6 +16,7 @@ import math
 import torch
 
 from ..config import SceneSpec, SecureConfig, TrainConfig
+from ..io.atomic import save_figure
 from ..model import AnchorModel
 from ..rasterizer import RasterOptions
 from ..train import ScaffoldTrainer
@@ -128,5 +129,5 @@ def plot_histogram(path, rows: list[dict], bits: int) -> None:
     ax.set_xlim(0, 1.02)
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
