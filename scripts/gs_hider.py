@@ -21,6 +21,7 @@ from securegs_warp.baselines.gs_hider import (GSHiderModel, evaluate_gs_hider, h
                                               train_gs_hider)
 from securegs_warp.cli.common import SCENE_FLAGS, TRAIN_FLAGS, add_config_flags, config_from_args, quiet_warp
 from securegs_warp.config import GSHiderConfig, RunConfig, TrainConfig
+from securegs_warp.io.atomic import atomic_write
 
 # What the synthetic scene renders as hidden views: by default the other built-in scene, seen from
 # every camera (GS-Hider's 3D scene hiding); --hide OBJECT --level scene hides an object inside the
@@ -61,7 +62,7 @@ def main():
         metrics = evaluate_gs_hider(reopened, scene, payload)
         rows.append({"payload": spec, **metrics, "release_mb": release_bytes(public) / 1e6, "train_s": seconds})
         print(json.dumps(rows[-1]), flush=True)
-    (out / "metrics.json").write_text(json.dumps(rows, indent=1))
+    atomic_write(out / "metrics.json", lambda f: f.write(json.dumps(rows, indent=1).encode()))
     spec = run.scene
     print(f"\n{spec.width}x{spec.height}, {spec.n_train}+{spec.n_test} views, {run.train.iterations} iterations, "
           f"decoder width {args.decoder_width}, {args.device}")
