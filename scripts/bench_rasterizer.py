@@ -21,6 +21,7 @@ import torch
 import warp as wp
 
 from securegs_warp import benchmark
+from securegs_warp.io.atomic import atomic_write
 
 
 def main():
@@ -67,10 +68,9 @@ def main():
     print(table)
     if args.out:
         os.makedirs(args.out, exist_ok=True)
-        with open(os.path.join(args.out, "bench_rasterizer.json"), "w") as f:
-            json.dump({"device": device_name, "rows": rows}, f, indent=1)
-        with open(os.path.join(args.out, "bench_rasterizer.md"), "w") as f:
-            f.write(table + "\n")
+        data = json.dumps({"device": device_name, "rows": rows}, indent=1).encode()
+        atomic_write(os.path.join(args.out, "bench_rasterizer.json"), lambda f: f.write(data))
+        atomic_write(os.path.join(args.out, "bench_rasterizer.md"), lambda f: f.write((table + "\n").encode()))
 
 
 if __name__ == "__main__":

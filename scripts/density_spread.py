@@ -18,7 +18,7 @@ import numpy as np
 
 from securegs_warp.io.atomic import atomic_write
 from securegs_warp.secure import steganalysis
-from securegs_warp.secure.container import KeyViews, open_container
+from securegs_warp.secure.container import open_container
 
 
 def main():
@@ -33,7 +33,10 @@ def main():
     rows = []
     for run in args.keys:
         model, meta = open_container(f"{run}/public", f"{run}/key.safetensors", device="cpu")
-        points, _ = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
+        try:
+            points, _ = steganalysis.key_surface(model, meta)
+        except steganalysis.NoHiddenSurface as why:
+            raise SystemExit(f"{run}: {why}") from None
         for a, b in itertools.permutations(range(len(plains)), 2):
             leak = steganalysis.leakage(plains[a], points, plains[b])
             rows.append({"surface_of": run, "model": args.plain[a], "reference": args.plain[b],

@@ -32,6 +32,7 @@ that have every variant's row.
         --per-device 2 --case mug:stand:5 --case ogre.obj:stand:8:y --case mug:sink:13 --out runs/study1080
 """
 import argparse
+import importlib.util
 import json
 import os
 import re
@@ -48,9 +49,10 @@ from securegs_warp.data.meshes import HIDDEN_OBJECTS, MESH_SUFFIXES, UP_AXES
 from securegs_warp.data.synthetic import PLACEMENTS, SCENES
 from securegs_warp.io.atomic import atomic_write
 from securegs_warp.robustness import SWEEP
-from securegs_warp.secure.container import KeyViews, open_container
+from securegs_warp.keys import KeyFileError
+from securegs_warp.secure.container import open_container
 from securegs_warp.secure.security import plot_anchor_clouds
-from securegs_warp.secure.steganalysis import auc_by_model, hidden_surface
+from securegs_warp.secure.steganalysis import NoHiddenSurface, auc_by_model, key_surface
 
 # The variant without extra flags; its folders and files carry no suffix.
 DEFAULT = "default"
@@ -260,25 +262,30 @@ def study_aucs(cases: list[dict], out: Path, variants) -> dict:
     return aucs
 
 
-def draw_clouds(case: dict, out: Path, variants) -> Path | None:
-    """OUT/NAME/anchor_clouds.png of a case whose plain model and containers are trained (None where
-    they are not, or the key decodes no hidden surface): the plain model's anchors and each variant's
-    around the surface the first variant's key decodes. ImportError without matplotlib."""
+def draw_clouds(case: dict, out: Path, variants) -> str:
+    """OUT/NAME/anchor_clouds.png of a case whose plain model and containers are trained and audited:
+    the plain model's anchors and each variant's around the surface the first variant's key decodes.
+    Returns what was done, or why no picture was drawn (not trained yet, a key that cannot be opened
+    or marks no surface). A picture newer than every run it shows is kept (drawing it renders the
+    key's hidden views again)."""
     run = out / case["name"]
+    path = run / "anchor_clouds.png"
     folders = {"plain Scaffold-GS": run / "plain", **{v: run / f"hide{suffix(v)}" for v in variants}}
-    if not all((f / "metrics.json").is_file() for f in folders.values()):
-        return None
+    inputs = [f / "metrics.json" for f in folders.values()] + [run / f"audit{suffix(v)}.json" for v in variants]
+    if not all(f.is_file() for f in inputs):
+        return f"{case['name']}: no anchor-cloud picture (not trained and audited yet)"
+    if path.is_file() and path.stat().st_mtime_ns >= max(f.stat().st_mtime_ns for f in inputs):
+        return f"kept {path}"
     first = run / f"hide{suffix(next(iter(variants)))}"
-    model, meta = open_container(first / "public", first / "key.safetensors", device="cpu")
-    if not model.renders_hidden:
-        return None
-    with torch.no_grad():
-        surface, _ = hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
-    if not len(surface):
-        return None
+    try:
+        model, meta = open_container(first / "public", first / "key.safetensors", device="cpu")
+        with torch.no_grad():
+            surface, _ = key_surface(model, meta)
+    except (KeyFileError, NoHiddenSurface) as why:
+        return f"{case['name']}: no anchor-cloud picture ({why})"
     clouds = {name: read_run_anchors(folder)[2] for name, folder in folders.items()}
-    plot_anchor_clouds(run / "anchor_clouds.png", clouds, surface)
-    return run / "anchor_clouds.png"
+    plot_anchor_clouds(path, clouds, surface)
+    return f"wrote {path}"
 
 
 def main():
@@ -348,13 +355,11 @@ def main():
     data = json.dumps({"args": vars(args), "rows": table_rows, "aucs": aucs, "missing": missing}, indent=1).encode()
     atomic_write(out / "study.json", lambda f: f.write(data))
     print(table)
-    try:
-        drawn = [draw_clouds(c, out, variants) for c in cases]
-    except ImportError:
+    if importlib.util.find_spec("matplotlib") is None:
         print("no anchor-cloud pictures: matplotlib is not installed (pip install -e \".[plots]\")")
         return
-    for path in filter(None, drawn):
-        print(f"wrote {path}")
+    for c in cases:
+        print(draw_clouds(c, out, variants))
 
 
 def run_cases(cases: list[dict], out: Path, wanted: dict, flags: list[str], variants: dict, sweep: dict,

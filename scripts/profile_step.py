@@ -28,6 +28,7 @@ from securegs_warp import benchmark, compare, step_profile
 from securegs_warp.cli.common import quiet_warp
 from securegs_warp.config import SecureConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
+from securegs_warp.io.atomic import atomic_write
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure.trainer import SecureTrainer
 from securegs_warp.train import ScaffoldTrainer
@@ -125,11 +126,10 @@ def main():
     print(text)
     if args.out:
         os.makedirs(args.out, exist_ok=True)
-        with open(os.path.join(args.out, "profile_step.json"), "w") as f:
-            json.dump({"device": device, "args": vars(args), "results": results, "counts": counts, "syncs": syncs},
-                      f, indent=1)
-        with open(os.path.join(args.out, "profile_step.md"), "w") as f:
-            f.write(text + "\n")
+        data = json.dumps({"device": device, "args": vars(args), "results": results, "counts": counts,
+                           "syncs": syncs}, indent=1).encode()
+        atomic_write(os.path.join(args.out, "profile_step.json"), lambda f: f.write(data))
+        atomic_write(os.path.join(args.out, "profile_step.md"), lambda f: f.write((text + "\n").encode()))
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from securegs_warp.compare import BASELINE, markdown_row, parse_variant, public_
 from securegs_warp.config import SecureConfig, TrainConfig
 from securegs_warp.data import make_synthetic_scene
 from securegs_warp.evaluation import render_fps
+from securegs_warp.io.atomic import atomic_write
 from securegs_warp.rasterizer import RasterOptions
 from securegs_warp.secure import SecureTrainer
 from securegs_warp.secure.security import plot_anchor_clouds
@@ -106,8 +107,8 @@ def main():
         write_report(out, meta, rows)
 
     # The anchors themselves, so that runs of one scene made apart can be drawn and audited together.
-    np.savez_compressed(out / "anchor_clouds.npz", hidden_points=scene.hidden_points, scene_points=scene.points,
-                        **{label: xyz for label, xyz in clouds.items()})
+    arrays = {"hidden_points": scene.hidden_points, "scene_points": scene.points, **clouds}
+    atomic_write(out / "anchor_clouds.npz", lambda f: np.savez_compressed(f, **arrays))
     plot_anchor_clouds(out / "anchor_clouds.png", clouds, scene.hidden_points)
     print(write_report(out, meta, rows))
 

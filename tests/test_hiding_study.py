@@ -1,12 +1,14 @@
 """scripts/hiding_study.py end to end on the CPU at a toy budget: two cases and two variants in the
 garden, the table and the AUCs, the anchor-cloud pictures, a rerun that reuses what is done and
 resumes what is not, and the settings guard."""
+import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "hiding_study.py"
+PLOTS = importlib.util.find_spec("matplotlib") is not None
 TOY = ["--width", "32", "--height", "24", "--iterations", "20", "--attacks", "prune-random", "--draws", "1",
        "--scene", "garden"]
 
@@ -38,12 +40,13 @@ def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path
     assert "| mug_stand_s0 | rdo |" in (tmp_path / "study.md").read_text()
     # A sweep counts as done by its marker, written when it ended (its JSON grows attack by attack).
     assert (tmp_path / "mug_stand_s0" / "robustness.done").is_file()
-    try:  # the anchor-cloud pictures need the plots extra; without it the study says so and ends well
-        import matplotlib  # noqa: F401
-    except ImportError:
-        assert "no anchor-cloud pictures: matplotlib is not installed" in done.stdout
+    # The anchor-cloud pictures need the plots extra; without it the study says so and ends well.
+    pictures = {case: tmp_path / case / "anchor_clouds.png" for case in ("mug_stand_s0", "pawn_sink_s1")}
+    if PLOTS:
+        assert all(p.is_file() for p in pictures.values())
+        drawn = {case: p.stat().st_mtime_ns for case, p in pictures.items()}
     else:
-        assert all((tmp_path / case / "anchor_clouds.png").is_file() for case in ("mug_stand_s0", "pawn_sink_s1"))
+        assert "no anchor-cloud pictures: matplotlib is not installed" in done.stdout
 
     plain = tmp_path / "mug_stand_s0" / "plain" / "metrics.json"
     before = plain.stat().st_mtime_ns
@@ -58,6 +61,9 @@ def test_two_cases_give_a_row_each_and_the_aucs_and_a_rerun_reuses_them(tmp_path
     audit = tmp_path / "pawn_sink_s1" / "audit.json"
     assert audit.stat().st_mtime_ns > (tmp_path / "pawn_sink_s1" / "hide" / "metrics.json").stat().st_mtime_ns
     assert (tmp_path / "mug_stand_s0" / "audit.json").stat().st_mtime_ns == mug_audit
+    if PLOTS:  # a picture is drawn again only where a run it shows was
+        assert pictures["mug_stand_s0"].stat().st_mtime_ns == drawn["mug_stand_s0"]
+        assert pictures["pawn_sink_s1"].stat().st_mtime_ns > drawn["pawn_sink_s1"]
 
     # A study cut short, tabled as it stands: nothing runs, a sweep that had not ended is marked, a
     # container not yet swept is listed, and the AUCs keep the cases with every variant's row.

@@ -7,7 +7,7 @@ import json
 import torch
 
 from ..secure import steganalysis
-from ..secure.container import KeyViews, open_container
+from ..secure.container import open_container
 from . import common
 from .secure import passphrase_from
 
@@ -47,11 +47,10 @@ def cmd_audit(args) -> int:
 def _leakage(model, meta: dict, release: dict, ref: dict | None) -> dict:
     """What the key's hidden surface finds in the anchor cloud (``steganalysis.leakage``), or a
     ``leakage_note`` saying why it cannot be measured."""
-    if not model.renders_hidden:
-        return {"leakage_note": "the key hides no object or scene (bits only): no hidden surface to measure"}
-    points, threshold = steganalysis.hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
-    if not len(points):
-        return {"leakage_note": "the key decodes no hidden Gaussian to mark the hidden surface"}
+    try:
+        points, threshold = steganalysis.key_surface(model, meta)
+    except steganalysis.NoHiddenSurface as why:
+        return {"leakage_note": str(why)}
     found = steganalysis.leakage(release["xyz"], points, None if ref is None else ref["xyz"])
     found["surface_opacity"] = threshold
     if ref is None:

@@ -57,8 +57,9 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[BinaryIO], None]) ->
 
 
 def save_figure(fig, path: str | os.PathLike, dpi: int) -> None:
-    """A matplotlib figure as a PNG at ``path``, atomically (the caller closes the figure)."""
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
+    """A matplotlib figure at ``path``, atomically, in the format its suffix names (PNG without one);
+    the caller closes the figure. A file object carries no name, so the format is passed explicitly."""
+    atomic_write(path, lambda f: fig.savefig(f, format=Path(path).suffix[1:].lower() or "png", dpi=dpi))
 
 
 @contextlib.contextmanager

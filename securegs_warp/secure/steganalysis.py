@@ -29,6 +29,8 @@ from scipy import stats
 from scipy.stats import wasserstein_distance
 from sklearn.neighbors import NearestNeighbors
 
+from .container import KeyViews
+
 # Cells per side of the grid over the cloud's central extent (1st to 99th percentile per axis).
 GRID_CELLS = 16
 # A cell needs this many anchors for its tests (fewer: its statistics are noise).
@@ -220,6 +222,22 @@ def hidden_surface(model, cameras, samples: int = 4096, min_opacity: float = SUR
     if len(pts) > samples:
         pts = pts[np.random.default_rng(seed).choice(len(pts), samples, replace=False)]
     return pts, threshold
+
+
+class NoHiddenSurface(ValueError):
+    """A key that marks no hidden surface in its container; the message says why."""
+
+
+def key_surface(model, meta: dict) -> tuple[np.ndarray, float]:
+    """``hidden_surface`` of a container opened with its key (``container.open_container``'s model and
+    metadata) over the key's hidden views: what audit, attack studies and pictures measure the leak
+    around. NoHiddenSurface saying why where there is none."""
+    if not model.renders_hidden:
+        raise NoHiddenSurface("the key hides no object or scene (bits only): no hidden surface to measure")
+    points, threshold = hidden_surface(model, KeyViews.from_metadata(meta, "cpu").hidden)
+    if not len(points):
+        raise NoHiddenSurface("the key decodes no hidden Gaussian to mark the hidden surface")
+    return points, threshold
 
 
 def leakage(xyz: np.ndarray, hidden_points: np.ndarray, reference_xyz: np.ndarray | None,
