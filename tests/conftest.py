@@ -7,7 +7,7 @@ anchors, where a key can leave a bit with few voters, and a cut then with none (
 reads undecided, which is the design's behaviour and counted by ``bits_without_voters``). Here the
 draws come from a generator seeded by the test's id (and, for a module's shared fixtures, by the
 module's name), so a failure reproduces on any machine, run alone or in the suite, instead of
-turning up once in a few hundred runs. Successive draws still differ, so tests of two keys still see
+turning up by the luck of a draw. Successive draws still differ, so tests of two keys still see
 two keys. Tests that run the CLI in a subprocess (``test_hiding_study``, parts of
 ``test_cli_safety``) still draw from the operating system.
 """

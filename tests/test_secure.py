@@ -319,13 +319,13 @@ def test_a_message_longer_than_the_grid_carries_is_warned_of():
 
 
 def test_bits_are_read_from_the_anchor_features(hidden_scene):
-    """The bit decoder has no bias, so it cannot output the message as a constant of its own: blank anchor
-    features decode nothing, and the message is read from the features. Every anchor votes, so after
-    losing half of them (random pruning, as in the paper's robustness study) every bit that keeps a
-    voter still reads right, and one left without voters votes 0.5 (undecided), never the wrong bit.
-    The keyed grid deals cells to bits unevenly (a 16-voxel grid over ~600 anchors gives some bit
-    only a handful of voters); a 4-voxel grid gives each bit many cells, so the cut leaves most bits
-    voters."""
+    """The bit decoder has no bias, so it cannot output the message as a constant of its own: blank
+    anchor features decode nothing, and the message is read from the features. Every anchor votes,
+    so the message survives losing half of them (random pruning, as in the paper's robustness study)
+    while every bit keeps voters, and every surviving voter agrees. The keyed grid deals cells to
+    bits unevenly: over ~600 anchors a 16-voxel grid leaves some keys a bit with so few voters that
+    the cut takes them all; a 4-voxel grid gives each bit many cells (docs/probes/half_cut_voters.py
+    counts both; docs/results.md, "Keys that leave a bit without voters after a half-cut")."""
     config = TrainConfig(iterations=40, raster=CPU_RASTER, densify=False)
     trainer = SecureTrainer(hidden_scene, config, SecureConfig(payload="bits:16", bit_cell_voxels=4.0))
     for _ in range(config.iterations):
@@ -334,11 +334,9 @@ def test_bits_are_read_from_the_anchor_features(hidden_scene):
     feat, xyz = trainer.model.anchors.feat.detach(), trainer.model.anchors.xyz
     assert torch.equal(private.decode_bits(feat, xyz), bits)
     half = torch.randperm(feat.shape[0], generator=torch.Generator().manual_seed(0))[: feat.shape[0] // 2]
+    assert torch.equal(private.decode_bits(feat[half], xyz[half]), bits)
     vote, voters = private.bits.vote(feat[half], xyz[half])
-    kept = voters > 0
-    assert int(kept.sum()) >= bits.numel() - 1
-    assert torch.equal(vote[kept], bits[kept].to(vote.dtype))  # unanimous: every survivor agrees
-    assert bool((vote[~kept] == 0.5).all())
+    assert bool((voters > 0).all()) and torch.equal(vote, bits.to(vote.dtype))  # unanimous: every survivor agrees
     with torch.no_grad():
         assert float(private.bit_logits(torch.zeros_like(feat), xyz)[0].abs().max()) == 0.0
     assert not torch.equal(private.decode_bits(torch.zeros_like(feat), xyz), bits)  # all zeros: bits has ones
