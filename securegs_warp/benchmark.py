@@ -726,7 +726,6 @@ def plot(rows, path):
     for ax, labels, points in labelled:
         place_labels(ax, labels, points)
     save_figure(fig, path, dpi=120)
-    plt.close(fig)
 
 
 def write(rows, out, title):

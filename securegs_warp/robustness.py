@@ -249,4 +249,3 @@ def plot_sweep(path: Path, rows: list[dict]) -> None:
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     save_figure(fig, path, dpi=100)
-    plt.close(fig)

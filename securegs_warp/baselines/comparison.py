@@ -374,4 +374,3 @@ def plot(path: Path, rows: list[dict]) -> None:
         ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
-    plt.close(fig)

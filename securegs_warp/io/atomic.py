@@ -57,9 +57,13 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[BinaryIO], None]) ->
 
 
 def save_figure(fig, path: str | os.PathLike, dpi: int) -> None:
-    """A matplotlib figure at ``path``, atomically, in the format its suffix names (PNG without one);
-    the caller closes the figure. A file object carries no name, so the format is passed explicitly."""
+    """A matplotlib figure at ``path``, atomically, in the format its suffix names (PNG without one),
+    then closed (pyplot keeps every open figure alive). A file object carries no name, so the format
+    is passed explicitly."""
+    import matplotlib.pyplot as plt  # only a caller that drew a figure has matplotlib
+
     atomic_write(path, lambda f: fig.savefig(f, format=Path(path).suffix[1:].lower() or "png", dpi=dpi))
+    plt.close(fig)
 
 
 @contextlib.contextmanager

@@ -68,4 +68,3 @@ def plot_anchor_clouds(path, clouds: dict[str, np.ndarray], hidden_points: np.nd
             ax.set_yticks([])
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
-    plt.close(fig)

@@ -130,4 +130,3 @@ def plot_histogram(path, rows: list[dict], bits: int) -> None:
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
-    plt.close(fig)
